@@ -1,0 +1,1 @@
+"""Bridges to other libraries (GTSAM, evo); each import is optional."""

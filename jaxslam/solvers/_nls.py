@@ -1,0 +1,288 @@
+"""Batch nonlinear least squares: Gauss-Newton and Levenberg-Marquardt.
+
+Cost convention (GTSAM's): ``sum_i rho_i(||R_i r_i||)``, ``rho(x) = x^2 / 2`` without a robust
+kernel. Both solvers stop on a relative or absolute cost decrease below tolerance, a step
+below ``step_tol``, or ``max_iterations``, and report a :class:`Status` instead of raising
+(``throw=True`` raises :class:`~jaxslam.errors.SolverError` on failure).
+
+LM is a trust-region method with Nielsen's damping update (Madsen, Nielsen, Tingleff,
+"Methods for non-linear least squares problems", 2004, sec. 3.2): the damping shrinks by
+``max(1/3, 1 - (2 rho - 1)^3)`` after a good step and doubles (then quadruples, ...) after a
+rejected one. The damping is ``lambda * clip(diag(H), min_diag, max_diag)`` (Marquardt's
+scaling, GTSAM's ``diagonalDamping``), so it is invariant to the units of each variable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import time
+from collections.abc import Callable, Sequence
+from typing import Literal
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..core import Factor, Values
+from ..errors import GraphError, SolverError
+from ._linear import SparseSystem
+from ._problem import Problem, assemble, retract_all, total_cost
+
+
+class Status(enum.Enum):
+    CONVERGED = "converged"
+    MAX_ITERATIONS = "max_iterations"
+    INDEFINITE = "indefinite"  # the linear system was not positive definite
+    GAUGE_FREE = "gauge_free"  # some variables are not anchored by any prior
+    NONFINITE = "nonfinite"  # NaN / inf in the cost (bad input values)
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """Options of the batch solvers."""
+
+    method: Literal["gn", "lm"] = "lm"
+    """Gauss-Newton or Levenberg-Marquardt."""
+    linear_solver: Literal["auto", "pardiso", "cholmod", "splu", "pcg"] = "auto"
+    """Sparse linear solver; ``auto`` = PARDISO (MKL) or CHOLMOD when installed, else SuperLU."""
+    max_iterations: int = 100
+    """Outer iterations (LM counts accepted and rejected steps)."""
+    relative_tol: float = 1e-10
+    """Stop when the cost decreases by less than this fraction."""
+    absolute_tol: float = 1e-12
+    """Stop when the cost decreases by less than this."""
+    step_tol: float = 1e-10
+    """Stop when the step's infinity norm is below this."""
+    initial_lambda: float = 1e-5
+    """LM: initial damping factor (relative to diag(H))."""
+    min_diag: float = 1e-6
+    """LM: clamp of diag(H) in the damping term."""
+    max_diag: float = 1e32
+    fix_gauge: bool = False
+    """Add a tight prior on one variable of every unanchored component (at its initial value)
+    instead of failing with GAUGE_FREE."""
+    ordering: Literal["amd", "metis", "colamd", "natural"] = "amd"
+    """Block fill-reducing ordering of the variable graph."""
+    verbose: bool = False
+
+
+@dataclasses.dataclass
+class SolverResult:
+    values: Values
+    status: Status
+    message: str
+    initial_cost: float
+    final_cost: float
+    iterations: int
+    linear_solves: int
+    time_s: float
+    cost_history: list[float]
+
+    @property
+    def success(self) -> bool:
+        return self.status in (Status.CONVERGED, Status.MAX_ITERATIONS)
+
+
+def _gauge_priors(problem: Problem, values: Values, sigma: float = 1e-6) -> list[Factor]:
+    """Tight priors on the first variable of every free component (GTSAM's examples fix the
+    first pose with sigma 1e-6 the same way)."""
+    from ..core import Gaussian
+    from ..factors import PriorFactor
+
+    priors: list[Factor] = []
+    for desc in problem.free_gauge_components():
+        name, vid = desc.split(" and ")[0].split(" ")
+        vtype = next(t for t in problem.var_types if t.__name__ == name)
+        var = vtype(np.array([int(vid)]))
+        priors.append(PriorFactor.create(var, values.get(var), Gaussian.isotropic(vtype.tangent_dim, sigma)))
+    return priors
+
+
+class Solver:
+    """A batch solver bound to one graph structure (analysis and compiled code reused).
+
+    ``Solver(factors, values, config).solve()``; call :meth:`solve` again with new initial
+    values (same ids) or after :meth:`set_factors` with the same structure without
+    re-analysis.
+    """
+
+    def __init__(self, factors: Sequence[Factor], values: Values, config: SolverConfig | None = None):
+        self.config = config or SolverConfig()
+        factors = list(factors)
+        self.problem = Problem(factors, values, ordering=self.config.ordering)
+        self.gauge_free = self.problem.free_gauge_components()
+        if self.gauge_free and self.config.fix_gauge:
+            factors = factors + _gauge_priors(self.problem, values)
+            self.problem = Problem(factors, values, ordering=self.config.ordering)
+            self.gauge_free = []
+        p = self.problem
+        self.system = SparseSystem(p.csc_indices, p.csc_indptr, p.ndof, p.diag_pos, self.config.linear_solver)
+        self._untouched = p.untouched_dofs
+        self.initial_values = values
+
+    # --- compiled pieces ----------------------------------------------------------------
+    def linearize(self, params: tuple) -> tuple[np.ndarray, np.ndarray, float]:
+        p = self.problem
+        hdata, grad, cost = assemble(params, p.group_data, static=p.static, nnz=p.nnz, ndof=p.ndof)
+        hdata = np.asarray(hdata)
+        if self._untouched.size:
+            hdata = hdata.copy()
+            hdata[p.diag_pos[self._untouched]] = 1.0
+        return hdata, np.asarray(grad), float(cost)
+
+    def cost(self, params: tuple) -> float:
+        return float(total_cost(params, self.problem.group_data, static=self.problem.static))
+
+    def retract(self, params: tuple, delta: np.ndarray) -> tuple:
+        p = self.problem
+        return retract_all(params, jnp.asarray(delta), p.dof_index_jax, var_types=p.var_types)
+
+    def evaluate(self, values: Values) -> float:
+        """Total cost of ``values`` (GTSAM's ``graph.error``)."""
+        return self.cost(self.problem.pad_values(values))
+
+    # --- solve --------------------------------------------------------------------------
+    def solve(
+        self,
+        values: Values | None = None,
+        *,
+        throw: bool = False,
+        callback: Callable[[int, float], None] | None = None,
+    ) -> SolverResult:
+        """Optimise from ``values`` (default: the values given at construction).
+        ``callback(iteration, cost)`` is called after every accepted step (progress bars)."""
+        values = self.initial_values if values is None else values
+        self._callback = callback
+        t0 = time.perf_counter()
+        params = self.problem.pad_values(values)
+        if self.gauge_free:
+            cost0 = self.cost(params)
+            msg = (
+                "the gauge is free: no prior anchors "
+                + "; ".join(self.gauge_free)
+                + " (a rigid motion of them leaves the cost unchanged). Add a PriorFactor on one "
+                "variable of each, or set fix_gauge=True"
+            )
+            return self._finish(values, Status.GAUGE_FREE, msg, cost0, cost0, 0, 0, t0, [cost0], throw)
+        if self.config.method == "gn":
+            return self._gauss_newton(params, t0, throw)
+        return self._levenberg_marquardt(params, t0, throw)
+
+    def _finish(
+        self,
+        values: Values,
+        status: Status,
+        message: str,
+        c0: float,
+        c1: float,
+        iters: int,
+        solves: int,
+        t0: float,
+        history: list[float],
+        throw: bool,
+    ) -> SolverResult:
+        res = SolverResult(values, status, message, c0, c1, iters, solves, time.perf_counter() - t0, history)
+        if throw and not res.success:
+            raise (GraphError if status is Status.GAUGE_FREE else SolverError)(message)
+        return res
+
+    def _report(self, it: int, cost: float) -> None:
+        if self.config.verbose:
+            print(f"iteration {it}: cost {cost:.10g}")
+        if getattr(self, "_callback", None) is not None:
+            self._callback(it, cost)
+
+    def _converged(self, old: float, new: float, step: np.ndarray) -> bool:
+        c = self.config
+        dec = old - new
+        return (
+            (dec >= 0 and dec < c.relative_tol * max(old, 1e-300))
+            or (dec >= 0 and dec < c.absolute_tol)
+            or float(np.max(np.abs(step), initial=0.0)) < c.step_tol
+        )
+
+    def _gauss_newton(self, params: tuple, t0: float, throw: bool) -> SolverResult:
+        c = self.config
+        hdata, grad, cost = self.linearize(params)
+        c0 = cost
+        history = [cost]
+        if not np.isfinite(cost):
+            return self._finish(self.problem.unpad_values(params), Status.NONFINITE, "initial cost is not finite",
+                                c0, cost, 0, 0, t0, history, throw)
+        status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
+        it = 0
+        for it in range(1, c.max_iterations + 1):
+            step = self.system.solve(hdata, -grad)
+            if step is None:
+                status, msg = Status.INDEFINITE, "the Gauss-Newton system is not positive definite (a variable is under-constrained)"
+                break
+            params = self.retract(params, step)
+            new_h, new_g, new_cost = self.linearize(params)
+            history.append(new_cost)
+            self._report(it, new_cost)
+            if not np.isfinite(new_cost):
+                status, msg = Status.NONFINITE, "the cost became non-finite"
+                break
+            done = self._converged(cost, new_cost, step)
+            hdata, grad, cost = new_h, new_g, new_cost
+            if done:
+                status, msg = Status.CONVERGED, "converged"
+                break
+        return self._finish(self.problem.unpad_values(params), status, msg, c0, cost, it, it, t0, history, throw)
+
+    def _levenberg_marquardt(self, params: tuple, t0: float, throw: bool) -> SolverResult:
+        c = self.config
+        hdata, grad, cost = self.linearize(params)
+        c0 = cost
+        history = [cost]
+        if not np.isfinite(cost):
+            return self._finish(self.problem.unpad_values(params), Status.NONFINITE, "initial cost is not finite",
+                                c0, cost, 0, 0, t0, history, throw)
+        lam, nu = c.initial_lambda, 2.0
+        status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
+        solves = 0
+        it = 0
+        diag_h = np.clip(hdata[self.problem.diag_pos], c.min_diag, c.max_diag)
+        for it in range(1, c.max_iterations + 1):
+            step = self.system.solve(hdata, -grad, lam * diag_h)
+            solves += 1
+            if step is None:
+                lam, nu = lam * nu, nu * 2.0
+                if lam > 1e20:
+                    status, msg = Status.INDEFINITE, "damping grew without bound: the system stays indefinite"
+                    break
+                continue
+            hstep = self.system.matvec(hdata, step)
+            predicted = -(grad @ step + 0.5 * step @ hstep)
+            new_params = self.retract(params, step)
+            new_cost = self.cost(new_params)
+            actual = cost - new_cost
+            rho = actual / predicted if predicted > 0 else -1.0
+            if np.isfinite(new_cost) and rho > 0:
+                done = self._converged(cost, new_cost, step)
+                params = new_params
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                hdata, grad, cost = self.linearize(params)
+                diag_h = np.clip(hdata[self.problem.diag_pos], c.min_diag, c.max_diag)
+                history.append(cost)
+                self._report(it, cost)
+                if done:
+                    status, msg = Status.CONVERGED, "converged"
+                    break
+            else:
+                if predicted <= 0 and abs(actual) <= c.absolute_tol + c.relative_tol * cost:
+                    status, msg = Status.CONVERGED, "converged (no further decrease possible)"
+                    break
+                lam, nu = lam * nu, nu * 2.0
+                if lam > 1e20:
+                    status, msg = Status.CONVERGED, "converged (damping saturated: no decreasing step)"
+                    break
+        return self._finish(self.problem.unpad_values(params), status, msg, c0, cost, it, solves, t0, history, throw)
+
+
+def optimize(
+    factors: Sequence[Factor], values: Values, config: SolverConfig | None = None, *, throw: bool = False
+) -> SolverResult:
+    """Analyse and solve in one call (GTSAM's ``optimizer.optimize()``)."""
+    return Solver(factors, values, config).solve(throw=throw)

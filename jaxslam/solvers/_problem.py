@@ -1,0 +1,410 @@
+"""Problem analysis: done once per graph structure, reused by every iteration.
+
+Data flow of one Gauss-Newton iteration::
+
+    Values arrays ──gather rows──▶ factor groups ──linearize (jit)──▶ whitened r, J
+        ──J_a^T J_b blocks, scatter by precomputed targets (jit)──▶ H (CSC lower data), g
+        ──sparse Cholesky (CHOLMOD, symbolic analysis reused)──▶ delta ──retract (jit)──▶ Values
+
+What is analysed here (numpy, once):
+
+* factors of the same class are concatenated into one *group* and padded to a capacity
+  bucket (padding rows are masked out), so similar graphs reuse compiled code;
+* every variable type's array is padded to a bucket too; the padded variables get a unit
+  diagonal in H (they are decoupled, their step is 0);
+* the global tangent layout: a block-level fill-reducing ordering (AMD on the variable graph)
+  decides each variable's scalar offset, so CHOLMOD's supernodes follow the 6x6 (3x3, ...)
+  blocks;
+* the sparsity pattern of the lower triangle of H in CSC order, and for every entry of every
+  Jacobian product ``J_a^T J_b`` its index in the CSC data array (``targets``). The numeric
+  assembly is then one scatter-add.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from ..core import Factor, Values, Variable, factor_cost, linearize
+from ..errors import GraphError
+
+
+def bucket(n: int, minimum: int = 8) -> int:
+    """Capacity for ``n`` items: the next of 8, 12, 16, 24, 32, 48, ... (at most 1.5x)."""
+    if n <= minimum:
+        return minimum
+    p = 2 ** math.floor(math.log2(n))
+    if n == p:
+        return n
+    return int(1.5 * p) if n <= 1.5 * p else 2 * p
+
+
+def _pad_leaf(leaf: Any, n: int, cap: int) -> Any:
+    if jnp.ndim(leaf) == 0 or cap == n:
+        return leaf
+    arr = leaf
+    reps = jnp.broadcast_to(arr[:1], (cap - n, *arr.shape[1:])) if isinstance(arr, jax.Array) else None
+    if reps is None:
+        arr = np.asarray(arr)
+        return np.concatenate([arr, np.repeat(arr[:1], cap - n, axis=0)], axis=0)
+    return jnp.concatenate([arr, reps], axis=0)
+
+
+def concatenate_factors(factors: Sequence[Factor]) -> Factor:
+    """One factor holding the constraints of several factors of the same class."""
+    if len(factors) == 1:
+        return factors[0]
+    return jax.tree_util.tree_map(
+        lambda *leaves: leaves[0] if jnp.ndim(leaves[0]) == 0 else jnp.concatenate([jnp.asarray(x) for x in leaves]),
+        *factors,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class GroupStructure:
+    """Static description of one factor group (hashable parts used as jit static data)."""
+
+    factor_type: type
+    var_types: tuple[type[Variable], ...]
+    slots: tuple[int, ...]  # index of each slot's type in Problem.var_types
+    residual_dim: int
+    num: int
+    capacity: int
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class GroupData:
+    """Array parts of one factor group, passed to jitted code as arguments."""
+
+    factor: Any  # the (padded) factor PyTree
+    rows: tuple[Array, ...]  # per slot: row in that variable type's padded array, (cap,)
+    mask: Array  # (cap,) bool
+    hess_targets: Array  # (cap * sum_ab t_a t_b,) index into H data, nnz = dropped
+    grad_targets: Array  # (cap * sum_a t_a,) index into g, ndof = dropped
+
+
+def _check_factor(f: Factor, index: int) -> int:
+    if not isinstance(f, Factor):
+        raise TypeError(f"factor {index} is a {type(f).__name__}, not a jaxslam Factor")
+    n = f.num_constraints
+    for path, leaf in jax.tree_util.tree_leaves_with_path(f):
+        if jnp.ndim(leaf) >= 1 and jnp.shape(leaf)[0] != n:
+            name = jax.tree_util.keystr(path)
+            raise ValueError(
+                f"{type(f).__name__} (factor {index}) has {n} constraints but field {name} has leading "
+                f"dimension {jnp.shape(leaf)[0]}; per-constraint data must have leading axis {n}"
+            )
+    return n
+
+
+class Problem:
+    """A factor graph analysed for repeated solves.
+
+    ``Problem(factors, values)`` checks that every factor's variables have values, groups the
+    factors, computes the ordering and sparsity pattern. ``values`` may hold variables no
+    factor touches; they are left unchanged.
+    """
+
+    def __init__(self, factors: Sequence[Factor], values: Values, *, ordering: str = "amd"):
+        if len(factors) == 0:
+            raise GraphError("the graph has no factors")
+        self.ordering_method = ordering
+        self._analyse_variables(values)
+        self._analyse_groups(factors, values)
+        self._analyse_layout(ordering)
+        self._analyse_pattern()
+
+    # --- variables ----------------------------------------------------------------------
+    def _analyse_variables(self, values: Values) -> None:
+        self.var_types: tuple[type[Variable], ...] = tuple(sorted(values.types(), key=lambda t: t.__name__))
+        self.type_index = {t: i for i, t in enumerate(self.var_types)}
+        self.var_ids = {t: values.ids(t) for t in self.var_types}
+        self.var_count = {t: len(self.var_ids[t]) for t in self.var_types}
+        self.var_capacity = {t: bucket(self.var_count[t]) for t in self.var_types}
+        self.values_template = values
+
+    def pad_values(self, values: Values) -> tuple[Array, ...]:
+        out = []
+        for t in self.var_types:
+            p = values.params(t)
+            n, cap = self.var_count[t], self.var_capacity[t]
+            if cap > n:
+                ident = jnp.broadcast_to(jnp.asarray(t.identity_params(), dtype=p.dtype), (cap - n, t.param_dim))
+                p = jnp.concatenate([p, ident], axis=0)
+            out.append(p)
+        return tuple(out)
+
+    def unpad_values(self, params: tuple[Array, ...]) -> Values:
+        return Values(
+            {t: self.var_ids[t] for t in self.var_types},
+            {t: p[: self.var_count[t]] for t, p in zip(self.var_types, params)},
+        )
+
+    # --- factor groups ------------------------------------------------------------------
+    def _analyse_groups(self, factors: Sequence[Factor], values: Values) -> None:
+        by_type: dict[tuple[Any, ...], list[Factor]] = {}
+        for i, f in enumerate(factors):
+            n = _check_factor(f, i)
+            if n == 0:
+                continue
+            for v in f.variables:
+                if type(v) not in self.var_ids:
+                    raise GraphError(f"{type(f).__name__} (factor {i}) uses {type(v).__name__}, which has no values")
+            key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+            by_type.setdefault(key, []).append(f)
+        if not by_type:
+            raise GraphError("the graph has no factors")
+        self.structures: list[GroupStructure] = []
+        self._group_factors: list[Factor] = []
+        self._group_rows: list[tuple[np.ndarray, ...]] = []
+        for (ftype, vtypes, rdim, _), fs in by_type.items():
+            f = concatenate_factors(fs)
+            n = f.num_constraints
+            rows = tuple(values.rows(v) for v in f.variables)
+            for a in range(len(rows)):
+                for b in range(a + 1, len(rows)):
+                    if vtypes[a] is vtypes[b] and np.any(rows[a] == rows[b]):
+                        k = int(np.nonzero(rows[a] == rows[b])[0][0])
+                        raise GraphError(
+                            f"{ftype.__name__} constraint {k} connects {vtypes[a].__name__} "
+                            f"{int(np.asarray(f.variables[a].ids)[k])} to itself"
+                        )
+            slots = tuple(self.type_index[t] for t in vtypes)
+            self.structures.append(GroupStructure(ftype, vtypes, slots, rdim, n, bucket(n)))
+            self._group_factors.append(f)
+            self._group_rows.append(rows)
+
+    # --- layout and ordering ------------------------------------------------------------
+    def _analyse_layout(self, ordering: str) -> None:
+        # Global block index of (type, row): types in order, rows within (padded) type.
+        self.block_base = {}
+        nb = 0
+        for t in self.var_types:
+            self.block_base[t] = nb
+            nb += self.var_capacity[t]
+        self.num_blocks = nb
+        block_dim = np.concatenate([np.full(self.var_capacity[t], t.tangent_dim) for t in self.var_types])
+        self.block_dim = block_dim
+        # Block adjacency from the factors.
+        pairs_i, pairs_j = [np.arange(nb)], [np.arange(nb)]
+        for s, rows in zip(self.structures, self._group_rows):
+            gb = [self.block_base[t] + r for t, r in zip(s.var_types, rows)]
+            for a in range(len(gb)):
+                for b in range(len(gb)):
+                    if a != b:
+                        pairs_i.append(gb[a])
+                        pairs_j.append(gb[b])
+        bi, bj = np.concatenate(pairs_i), np.concatenate(pairs_j)
+        self._block_pairs = (bi, bj)
+        perm = block_ordering(bi, bj, nb, ordering)
+        # position of each block in the elimination order -> scalar offset
+        offset_in_order = np.concatenate([[0], np.cumsum(block_dim[perm])[:-1]])
+        self.block_offset = np.empty(nb, dtype=np.int64)
+        self.block_offset[perm] = offset_in_order
+        self.ndof = int(block_dim.sum())
+        # scalar index of each tangent component, per variable type: (cap, t)
+        self.dof_index = {
+            t: self.block_offset[self.block_base[t] : self.block_base[t] + self.var_capacity[t]][:, None]
+            + np.arange(t.tangent_dim)[None, :]
+            for t in self.var_types
+        }
+        self.dof_index_jax = tuple(jnp.asarray(self.dof_index[t], dtype=jnp.int32) for t in self.var_types)
+
+    # --- sparsity pattern and scatter targets -------------------------------------------
+    def _analyse_pattern(self) -> None:
+        n = self.ndof
+        keys_per_group: list[list[np.ndarray]] = []
+        all_keys = [self._diag_keys()]
+        for s, rows in zip(self.structures, self._group_rows):
+            dofs = [self.dof_index[t][r] for t, r in zip(s.var_types, rows)]  # (num, t_a)
+            gk = []
+            for a in range(len(dofs)):
+                for b in range(len(dofs)):
+                    if b < a:
+                        continue
+                    ra = dofs[a][:, :, None]
+                    cb = dofs[b][:, None, :]
+                    rr, cc = np.broadcast_arrays(ra, cb)
+                    lo_r, lo_c = np.maximum(rr, cc), np.minimum(rr, cc)
+                    key = lo_c.astype(np.int64) * n + lo_r
+                    if a == b:  # symmetric diagonal block: keep p >= q entries only
+                        ta = dofs[a].shape[1]
+                        keep = np.tril(np.ones((ta, ta), bool))[None]
+                        key = np.where(keep, key, -1)
+                    gk.append(key.reshape(s.num, -1))
+            keys_per_group.append(gk)
+            all_keys.extend(k[k >= 0] for k in (x.ravel() for x in gk))
+        uniq = np.unique(np.concatenate(all_keys))
+        self.nnz = len(uniq)
+        cols = uniq // n
+        self.csc_indices = (uniq % n).astype(np.int32)
+        self.csc_indptr = np.searchsorted(cols, np.arange(n + 1)).astype(np.int32)
+        diag_keys = np.arange(n, dtype=np.int64) * n + np.arange(n)
+        self.diag_pos = np.searchsorted(uniq, diag_keys)
+        # Which dofs are padding (no factor touches them): they get a unit diagonal.
+        touched = np.zeros(n, bool)
+        for s, rows in zip(self.structures, self._group_rows):
+            for t, r in zip(s.var_types, rows):
+                touched[self.dof_index[t][r].ravel()] = True
+        self.untouched_dofs = np.nonzero(~touched)[0]
+
+        self.group_data: list[GroupData] = []
+        for s, f, rows, gk in zip(self.structures, self._group_factors, self._group_rows, keys_per_group):
+            cap = s.capacity
+            tgt_blocks = []
+            for key in gk:
+                t = np.where(key >= 0, np.searchsorted(uniq, np.maximum(key, 0)), self.nnz)
+                t = np.concatenate([t, np.full((cap - s.num, t.shape[1]), self.nnz)], axis=0)
+                tgt_blocks.append(t)
+            hess_targets = np.concatenate(tgt_blocks, axis=1).reshape(-1)
+            grad_t = np.concatenate([self.dof_index[t][r] for t, r in zip(s.var_types, rows)], axis=1)
+            grad_t = np.concatenate([grad_t, np.full((cap - s.num, grad_t.shape[1]), n)], axis=0).reshape(-1)
+            prow = tuple(
+                jnp.asarray(np.concatenate([r, np.full(cap - s.num, r[0])]), dtype=jnp.int32) for r in rows
+            )
+            mask = np.zeros(cap, bool)
+            mask[: s.num] = True
+            padded = jax.tree_util.tree_map(lambda leaf, _n=s.num, _c=cap: _pad_leaf(leaf, _n, _c), f)
+            self.group_data.append(
+                GroupData(
+                    factor=padded,
+                    rows=prow,
+                    mask=jnp.asarray(mask),
+                    hess_targets=jnp.asarray(hess_targets, dtype=jnp.int32),
+                    grad_targets=jnp.asarray(grad_t, dtype=jnp.int32),
+                )
+            )
+        self.static = tuple(self.structures)
+        self.unary_blocks = self._unary_blocks()
+
+    def _diag_keys(self) -> np.ndarray:
+        n = self.ndof
+        return np.arange(n, dtype=np.int64) * n + np.arange(n)
+
+    def _unary_blocks(self) -> np.ndarray:
+        """Blocks touched by a single-variable factor (priors): they fix a gauge."""
+        out = []
+        for s, rows in zip(self.structures, self._group_rows):
+            if len(s.var_types) == 1:
+                out.append(self.block_base[s.var_types[0]] + rows[0])
+        return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+    # --- diagnostics --------------------------------------------------------------------
+    def free_gauge_components(self) -> list[str]:
+        """Connected components of the variable graph with no unary factor: their gauge
+        (global position/orientation) is not fixed. Returns a description of each."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        bi, bj = self._block_pairs
+        nb = self.num_blocks
+        adj = coo_matrix((np.ones(len(bi)), (bi, bj)), shape=(nb, nb)).tocsr()
+        ncomp, labels = connected_components(adj, directed=False)
+        touched = np.zeros(nb, bool)
+        for s, rows in zip(self.structures, self._group_rows):
+            for t, r in zip(s.var_types, rows):
+                touched[self.block_base[t] + r] = True
+        fixed = np.zeros(ncomp, bool)
+        fixed[labels[self.unary_blocks]] = True
+        out = []
+        for c in range(ncomp):
+            members = np.nonzero((labels == c) & touched)[0]
+            if fixed[c] or members.size == 0:
+                continue
+            out.append(self.describe_block(int(members[0])) + f" and {members.size - 1} more")
+        return out
+
+    def describe_block(self, b: int) -> str:
+        for t in reversed(self.var_types):
+            if b >= self.block_base[t]:
+                row = b - self.block_base[t]
+                return f"{t.__name__} {int(self.var_ids[t][row])}"
+        return f"block {b}"
+
+    def block_of(self, var: Variable) -> np.ndarray:
+        return self.block_base[type(var)] + self.values_template.rows(var)
+
+
+def block_ordering(bi: np.ndarray, bj: np.ndarray, nb: int, method: str) -> np.ndarray:
+    """Fill-reducing elimination order of the variable (block) graph."""
+    if method == "natural" or nb < 3:
+        return np.arange(nb)
+    from scipy.sparse import coo_matrix
+
+    adj = coo_matrix((np.ones(len(bi)), (bi, bj)), shape=(nb, nb)).tocsc()
+    adj.sum_duplicates()
+    adj = adj + coo_matrix((np.full(nb, float(nb)), (np.arange(nb), np.arange(nb))), shape=(nb, nb)).tocsc()
+    try:
+        from sksparse.cholmod import analyze
+
+        return np.asarray(analyze(adj.tocsc(), ordering_method=method).P(), dtype=np.int64)
+    except ImportError:
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        return np.asarray(reverse_cuthill_mckee(adj.tocsr(), symmetric_mode=True), dtype=np.int64)
+
+
+# --- jitted numeric kernels ---------------------------------------------------------------
+def _gather(params: tuple[Array, ...], s: GroupStructure, g: GroupData) -> tuple[Array, ...]:
+    return tuple(params[k][r] for k, r in zip(s.slots, g.rows))
+
+
+def _block_products(lin_j: tuple[Array, ...], nvar: int) -> list[Array]:
+    out = []
+    for a in range(nvar):
+        for b in range(a, nvar):
+            out.append(jnp.einsum("nra,nrb->nab", lin_j[a], lin_j[b]).reshape(lin_j[a].shape[0], -1))
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("static", "nnz", "ndof"))
+def assemble(
+    params: tuple[Array, ...],
+    groups: list[GroupData],
+    *,
+    static: tuple[GroupStructure, ...],
+    nnz: int,
+    ndof: int,
+) -> tuple[Array, Array, Array]:
+    """Linearise every group and assemble ``(H data in CSC lower order, g, cost)``."""
+    hdata = jnp.zeros(nnz + 1)
+    grad = jnp.zeros(ndof + 1)
+    cost = jnp.zeros(())
+    for s, g in zip(static, groups):
+        lin = linearize(g.factor, _gather(params, s, g), g.mask)
+        blocks = jnp.concatenate(_block_products(lin.jacobians, len(s.var_types)), axis=1).reshape(-1)
+        hdata = hdata.at[g.hess_targets].add(blocks)
+        gvec = jnp.concatenate(
+            [jnp.einsum("nra,nr->na", j, lin.residual) for j in lin.jacobians], axis=1
+        ).reshape(-1)
+        grad = grad.at[g.grad_targets].add(gvec)
+        cost = cost + jnp.sum(lin.cost)
+    return hdata[:nnz], grad[:ndof], cost
+
+
+@functools.partial(jax.jit, static_argnames=("static",))
+def total_cost(params: tuple[Array, ...], groups: list[GroupData], *, static: tuple[GroupStructure, ...]) -> Array:
+    cost = jnp.zeros(())
+    for s, g in zip(static, groups):
+        cost = cost + jnp.sum(factor_cost(g.factor, _gather(params, s, g), g.mask))
+    return cost
+
+
+@functools.partial(jax.jit, static_argnames=("var_types",))
+def retract_all(
+    params: tuple[Array, ...],
+    delta: Array,
+    dof_index: tuple[Array, ...],
+    *,
+    var_types: tuple[type[Variable], ...],
+) -> tuple[Array, ...]:
+    return tuple(t.retract(p, delta[idx]) for t, p, idx in zip(var_types, params, dof_index))
