@@ -1,0 +1,28 @@
+"""Readers and writers: pose graphs (g2o and GTSAM's text formats) and trajectories (TUM,
+KITTI). Every reader raises :class:`~jaxslam.errors.InputFormatError` naming the file and line
+for bad input, and writes floats at full float64 precision."""
+
+from .. import _config  # noqa: F401
+from ._g2o import IGNORED_TAGS, TAGS, quaternion_from_rpy, read_g2o, write_g2o
+from ._parse import QUATERNION_NORM_TOLERANCE
+from ._posegraph import FIX_SIGMA, PoseGraph, chain_odometry
+from ._trajectory import ROTATION_TOLERANCE, Trajectory, read_kitti, read_trajectory, read_tum, write_kitti, write_tum
+
+__all__ = [
+    "FIX_SIGMA",
+    "IGNORED_TAGS",
+    "QUATERNION_NORM_TOLERANCE",
+    "ROTATION_TOLERANCE",
+    "TAGS",
+    "PoseGraph",
+    "Trajectory",
+    "chain_odometry",
+    "quaternion_from_rpy",
+    "read_g2o",
+    "read_kitti",
+    "read_trajectory",
+    "read_tum",
+    "write_g2o",
+    "write_kitti",
+    "write_tum",
+]
