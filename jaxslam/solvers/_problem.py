@@ -35,6 +35,7 @@ from jax import Array
 
 from ..core import Factor, Values, Variable, factor_cost, linearize
 from ..errors import GraphError
+from ..lie import mm, mT
 
 
 def bucket(n: int, minimum: int = 8) -> int:
@@ -76,8 +77,8 @@ class GroupStructure:
     var_types: tuple[type[Variable], ...]
     slots: tuple[int, ...]  # index of each slot's type in Problem.var_types
     residual_dim: int
-    num: int
-    capacity: int
+    num: int = dataclasses.field(compare=False)  # not part of the compiled signature
+    capacity: int = 0
 
 
 @jax.tree_util.register_dataclass
@@ -245,6 +246,7 @@ class Problem:
             all_keys.extend(k[k >= 0] for k in (x.ravel() for x in gk))
         uniq = np.unique(np.concatenate(all_keys))
         self.nnz = len(uniq)
+        self.nnz_capacity = bucket(self.nnz + 1)  # compiled size of the H data buffer
         cols = uniq // n
         self.csc_indices = (uniq % n).astype(np.int32)
         self.csc_indptr = np.searchsorted(cols, np.arange(n + 1)).astype(np.int32)
@@ -362,7 +364,7 @@ def _block_products(lin_j: tuple[Array, ...], nvar: int) -> list[Array]:
     out = []
     for a in range(nvar):
         for b in range(a, nvar):
-            out.append(jnp.einsum("nra,nrb->nab", lin_j[a], lin_j[b]).reshape(lin_j[a].shape[0], -1))
+            out.append(mm(mT(lin_j[a]), lin_j[b]).reshape(lin_j[a].shape[0], -1))
     return out
 
 
@@ -376,7 +378,7 @@ def assemble(
     ndof: int,
 ) -> tuple[Array, Array, Array]:
     """Linearise every group and assemble ``(H data in CSC lower order, g, cost)``."""
-    hdata = jnp.zeros(nnz + 1)
+    hdata = jnp.zeros(nnz)  # nnz is the bucketed capacity; entries past the real nnz are dropped
     grad = jnp.zeros(ndof + 1)
     cost = jnp.zeros(())
     for s, g in zip(static, groups):
@@ -384,11 +386,11 @@ def assemble(
         blocks = jnp.concatenate(_block_products(lin.jacobians, len(s.var_types)), axis=1).reshape(-1)
         hdata = hdata.at[g.hess_targets].add(blocks)
         gvec = jnp.concatenate(
-            [jnp.einsum("nra,nr->na", j, lin.residual) for j in lin.jacobians], axis=1
+            [jnp.sum(j * lin.residual[:, :, None], axis=1) for j in lin.jacobians], axis=1
         ).reshape(-1)
         grad = grad.at[g.grad_targets].add(gvec)
         cost = cost + jnp.sum(lin.cost)
-    return hdata[:nnz], grad[:ndof], cost
+    return hdata, grad[:ndof], cost
 
 
 @functools.partial(jax.jit, static_argnames=("static",))
