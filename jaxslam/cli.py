@@ -57,9 +57,9 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     from .io import read_g2o, write_g2o
     from .solvers import Solver, SolverConfig
 
+    robust = _robust_kernel(args.robust)  # check the options before any I/O
     t0 = time.perf_counter()
     graph = read_g2o(args.input)
-    robust = _robust_kernel(args.robust)
     factors = list(graph.factors)
     if robust is not None:
         factors = [f.with_robust(robust) if len(f.variables) == 2 else f for f in factors]
