@@ -96,19 +96,18 @@ class SolverResult:
         return self.status in (Status.CONVERGED, Status.MAX_ITERATIONS)
 
 
-def _gauge_priors(problem: Problem, values: Values, sigma: float = 1e-6) -> list[Factor]:
-    """Tight priors on the first variable of every free component (GTSAM's examples fix the
-    first pose with sigma 1e-6 the same way)."""
-    from ..core import Gaussian
-    from ..factors import PriorFactor
+@dataclasses.dataclass(frozen=True)
+class _GaugeAnchor:
+    """A tight prior on one variable, applied directly to the normal equations:
+    cost ``w/2 |local(x0, x)|^2``, Jacobian ``I`` (exact at the anchor), ``w = 1/sigma^2``.
+    Solvers never import a concrete factor, so the gauge is fixed here rather than by adding
+    a PriorFactor (GTSAM's examples fix the first pose with sigma 1e-6 the same way)."""
 
-    priors: list[Factor] = []
-    for desc in problem.free_gauge_components():
-        name, vid = desc.split(" and ")[0].split(" ")
-        vtype = next(t for t in problem.var_types if t.__name__ == name)
-        var = vtype(np.array([int(vid)]))
-        priors.append(PriorFactor.create(var, values.get(var), Gaussian.isotropic(vtype.tangent_dim, sigma)))
-    return priors
+    type_index: int
+    row: int
+    x0: np.ndarray
+    dofs: np.ndarray
+    weight: float
 
 
 class Solver:
@@ -123,28 +122,54 @@ class Solver:
         self.config = config or SolverConfig()
         factors = list(factors)
         self.problem = Problem(factors, values, ordering=self.config.ordering)
+        self.anchors: list[_GaugeAnchor] = []
         self.gauge_free = self.problem.free_gauge_components()
         if self.gauge_free and self.config.fix_gauge:
-            factors = factors + _gauge_priors(self.problem, values)
-            self.problem = Problem(factors, values, ordering=self.config.ordering)
+            self.anchors = self._make_anchors(values)
             self.gauge_free = []
         p = self.problem
         self.system = SparseSystem(p.csc_indices, p.csc_indptr, p.ndof, p.diag_pos, self.config.linear_solver)
         self._untouched = p.untouched_dofs
         self.initial_values = values
 
+    def _make_anchors(self, values: Values, sigma: float = 1e-6) -> list[_GaugeAnchor]:
+        p = self.problem
+        out = []
+        for block in p.free_gauge_blocks():
+            vtype, row = p.block_variable(block)
+            k = p.type_index[vtype]
+            x0 = np.asarray(values.params(vtype))[row]
+            out.append(_GaugeAnchor(k, row, x0, p.dof_index[vtype][row], 1.0 / sigma**2))
+        return out
+
+    def _anchor_terms(self, params: tuple) -> list[tuple[_GaugeAnchor, np.ndarray]]:
+        out = []
+        for a in self.anchors:
+            vtype = self.problem.var_types[a.type_index]
+            x = params[a.type_index][a.row]
+            out.append((a, np.asarray(vtype.local(jnp.asarray(a.x0)[None], x[None]))[0]))
+        return out
+
     # --- compiled pieces ----------------------------------------------------------------
     def linearize(self, params: tuple) -> tuple[np.ndarray, np.ndarray, float]:
         p = self.problem
         hdata, grad, cost = assemble(params, p.group_data, static=p.static, nnz=p.nnz_capacity, ndof=p.ndof)
         hdata = np.asarray(hdata)[: p.nnz]
-        if self._untouched.size:
+        grad = np.asarray(grad)
+        cost = float(cost)
+        if self._untouched.size or self.anchors:
             hdata = hdata.copy()
+            grad = grad.copy()
             hdata[p.diag_pos[self._untouched]] = 1.0
-        return hdata, np.asarray(grad), float(cost)
+            for a, d in self._anchor_terms(params):
+                hdata[p.diag_pos[a.dofs]] += a.weight
+                grad[a.dofs] += a.weight * d
+                cost += 0.5 * a.weight * float(d @ d)
+        return hdata, grad, cost
 
     def cost(self, params: tuple) -> float:
-        return float(total_cost(params, self.problem.group_data, static=self.problem.static))
+        c = float(total_cost(params, self.problem.group_data, static=self.problem.static))
+        return c + sum(0.5 * a.weight * float(d @ d) for a, d in self._anchor_terms(params))
 
     def retract(self, params: tuple, delta: np.ndarray) -> tuple:
         p = self.problem

@@ -304,6 +304,22 @@ class Problem:
     def free_gauge_components(self) -> list[str]:
         """Connected components of the variable graph with no unary factor: their gauge
         (global position/orientation) is not fixed. Returns a description of each."""
+        return [
+            self.describe_block(int(b)) + f" and {n - 1} more" for b, n in zip(*self._free_gauge())
+        ]
+
+    def free_gauge_blocks(self) -> list[int]:
+        """The first variable (block) of every component whose gauge is free."""
+        return [int(b) for b in self._free_gauge()[0]]
+
+    def block_variable(self, b: int) -> tuple[type[Variable], int]:
+        """(variable type, row in its values array) of a block."""
+        for t in reversed(self.var_types):
+            if b >= self.block_base[t]:
+                return t, b - self.block_base[t]
+        raise IndexError(b)
+
+    def _free_gauge(self) -> tuple[list[int], list[int]]:
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
 
@@ -317,20 +333,18 @@ class Problem:
                 touched[self.block_base[t] + r] = True
         fixed = np.zeros(ncomp, bool)
         fixed[labels[self.unary_blocks]] = True
-        out = []
+        first, sizes = [], []
         for c in range(ncomp):
             members = np.nonzero((labels == c) & touched)[0]
             if fixed[c] or members.size == 0:
                 continue
-            out.append(self.describe_block(int(members[0])) + f" and {members.size - 1} more")
-        return out
+            first.append(int(members[0]))
+            sizes.append(int(members.size))
+        return first, sizes
 
     def describe_block(self, b: int) -> str:
-        for t in reversed(self.var_types):
-            if b >= self.block_base[t]:
-                row = b - self.block_base[t]
-                return f"{t.__name__} {int(self.var_ids[t][row])}"
-        return f"block {b}"
+        t, row = self.block_variable(b)
+        return f"{t.__name__} {int(self.var_ids[t][row])}"
 
     def block_of(self, var: Variable) -> np.ndarray:
         return self.block_base[type(var)] + self.values_template.rows(var)
