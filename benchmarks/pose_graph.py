@@ -35,13 +35,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import jaxslam  # noqa: E402
-from jaxslam.cli import initial_values_for  # noqa: E402
-from jaxslam.core import Gaussian  # noqa: E402
-from jaxslam.factors import PriorFactor  # noqa: E402
-from jaxslam.interop.gtsam import to_gtsam, values_to_gtsam  # noqa: E402
-from jaxslam.io import read_g2o  # noqa: E402
-from jaxslam.solvers import Solver, SolverConfig  # noqa: E402
+import jaxslam
+from jaxslam.cli import initial_values_for
+from jaxslam.core import Gaussian
+from jaxslam.factors import PriorFactor
+from jaxslam.interop.gtsam import to_gtsam, values_to_gtsam
+from jaxslam.io import read_g2o
+from jaxslam.solvers import Solver, SolverConfig
 
 
 def _resolve(name: str) -> str:
@@ -52,7 +52,7 @@ def _resolve(name: str) -> str:
     return gtsam.findExampleDataFile(name)
 
 
-def _anchor(graph) -> list:  # noqa: ANN001
+def _anchor(graph) -> list:
     """The graph's factors plus a prior on the first vertex (if the file fixes none)."""
     factors = list(graph.factors)
     if graph.fixed.size == 0:
@@ -62,7 +62,7 @@ def _anchor(graph) -> list:  # noqa: ANN001
     return factors
 
 
-def run_ours(factors, values, gt_graph, method: str, repeat: int, max_iterations: int, linear_solver: str) -> dict:  # noqa: ANN001
+def run_ours(factors, values, gt_graph, method: str, repeat: int, max_iterations: int, linear_solver: str) -> dict:
     cfg = SolverConfig(method=method, max_iterations=max_iterations, linear_solver=linear_solver)
     t0 = time.perf_counter()
     solver = Solver(factors, values, cfg)
@@ -94,7 +94,7 @@ def run_ours(factors, values, gt_graph, method: str, repeat: int, max_iterations
     }
 
 
-def run_gtsam(gt_graph, gt_initial, method: str, repeat: int, max_iterations: int | None = None) -> dict:  # noqa: ANN001
+def run_gtsam(gt_graph, gt_initial, method: str, repeat: int, max_iterations: int | None = None) -> dict:
     import gtsam
 
     times = []
@@ -122,7 +122,7 @@ def run_gtsam(gt_graph, gt_initial, method: str, repeat: int, max_iterations: in
     }
 
 
-def gn_iteration_ms(solver: Solver, values, gt_graph, gt_initial, n: int, repeat: int) -> tuple[float, float]:  # noqa: ANN001
+def gn_iteration_ms(solver: Solver, values, gt_graph, gt_initial, n: int, repeat: int) -> tuple[float, float]:
     """Time per GN iteration, both libraries, with exactly ``n`` iterations (no early stop)."""
     import dataclasses
 
@@ -130,8 +130,9 @@ def gn_iteration_ms(solver: Solver, values, gt_graph, gt_initial, n: int, repeat
 
     s = Solver.__new__(Solver)
     s.__dict__.update(solver.__dict__)
-    s.config = dataclasses.replace(solver.config, method="gn", max_iterations=n, relative_tol=0.0,
-                                   absolute_tol=0.0, step_tol=0.0)
+    s.config = dataclasses.replace(
+        solver.config, method="gn", max_iterations=n, relative_tol=0.0, absolute_tol=0.0, step_tol=0.0
+    )
     s.solve(values)
     ours = min(_timed(lambda: s.solve(values)) for _ in range(repeat)) / n
     p = gtsam.GaussNewtonParams()
@@ -139,11 +140,13 @@ def gn_iteration_ms(solver: Solver, values, gt_graph, gt_initial, n: int, repeat
     p.setRelativeErrorTol(0.0)
     p.setAbsoluteErrorTol(0.0)
     p.setErrorTol(0.0)
-    theirs = min(_timed(lambda: gtsam.GaussNewtonOptimizer(gt_graph, gt_initial, p).optimize()) for _ in range(repeat)) / n
+    theirs = (
+        min(_timed(lambda: gtsam.GaussNewtonOptimizer(gt_graph, gt_initial, p).optimize()) for _ in range(repeat)) / n
+    )
     return ours * 1e3, theirs * 1e3
 
 
-def _timed(fn) -> float:  # noqa: ANN001
+def _timed(fn) -> float:
     t0 = time.perf_counter()
     fn()
     return time.perf_counter() - t0
@@ -158,8 +161,13 @@ def bench_file(path: str, repeat: int, linear_solver: str, gn_iters: int) -> dic
     factors = _anchor(graph)
     values = graph.values
     gt_graph, gt_initial = to_gtsam(factors, values)
-    out: dict = {"file": Path(path).name, "vertices": int(len(graph.vertex_ids)), "edges": graph.num_edges,
-                 "dim": graph.dim, "initialised_from": graph.initialised_from}
+    out: dict = {
+        "file": Path(path).name,
+        "vertices": len(graph.vertex_ids),
+        "edges": graph.num_edges,
+        "dim": graph.dim,
+        "initialised_from": graph.initialised_from,
+    }
     gn = run_ours(factors, values, gt_graph, "gn", repeat, 100, linear_solver)
     lm = run_ours(factors, values, gt_graph, "lm", repeat, 200, linear_solver)
     g_gn = run_gtsam(gt_graph, gt_initial, "gn", repeat)
@@ -194,22 +202,33 @@ def bench_file(path: str, repeat: int, linear_solver: str, gn_iters: int) -> dic
 
 
 def print_table(rows: list[dict]) -> None:
-    hdr = f"{'file':<22}{'solver':<16}{'initial':>14}{'final (GTSAM eval)':>20}{'iters':>7}{'time s':>9}{'compile s':>10}"
+    hdr = (
+        f"{'file':<22}{'solver':<16}{'initial':>14}{'final (GTSAM eval)':>20}{'iters':>7}{'time s':>9}{'compile s':>10}"
+    )
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
-        entries = [("ours GN", r["ours"]["gn"]), ("ours LM", r["ours"]["lm"]),
-                   ("ours chordal+LM", r["ours_chordal"]["lm"]), ("GTSAM GN", r["gtsam"]["gn"]),
-                   ("GTSAM LM", r["gtsam"]["lm"])]
+        entries = [
+            ("ours GN", r["ours"]["gn"]),
+            ("ours LM", r["ours"]["lm"]),
+            ("ours chordal+LM", r["ours_chordal"]["lm"]),
+            ("GTSAM GN", r["gtsam"]["gn"]),
+            ("GTSAM LM", r["gtsam"]["lm"]),
+        ]
         for name, e in entries:
-            print(f"{r['file']:<22}{name:<16}{e['initial_cost']:>14.6g}{e['final_cost']:>20.10g}{e['iterations']:>7}"
-                  f"{e['time_s']:>9.3f}{e['compile_s']:>10.2f}")
+            print(
+                f"{r['file']:<22}{name:<16}{e['initial_cost']:>14.6g}{e['final_cost']:>20.10g}{e['iterations']:>7}"
+                f"{e['time_s']:>9.3f}{e['compile_s']:>10.2f}"
+            )
         g = r["gn_iteration_ms"]
         reach = r["reach_gtsam_lm_cost"]
         ratio = "not reached" if reach["ratio"] is None else f"{reach['ratio']:.3f} via {reach['ours_route']}"
-        print(f"  GN iteration: ours {g['ours']:.1f} ms, GTSAM {g['gtsam']:.1f} ms, ratio {g['ratio']:.2f}; "
-              f"time to GTSAM LM's final cost / GTSAM LM time: {ratio}; "
-              f"LM final vs GTSAM LM: {r['lm_final_vs_gtsam_rel']:+.2e} rel, chordal+LM: {r['chordal_final_vs_gtsam_rel']:+.2e} rel")
+        print(
+            f"  GN iteration: ours {g['ours']:.1f} ms, GTSAM {g['gtsam']:.1f} ms, ratio {g['ratio']:.2f}; "
+            f"time to GTSAM LM's final cost / GTSAM LM time: {ratio}; "
+            f"LM final vs GTSAM LM: {r['lm_final_vs_gtsam_rel']:+.2e} rel, "
+            f"chordal+LM: {r['chordal_final_vs_gtsam_rel']:+.2e} rel"
+        )
         print()
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from .errors import ConfigError, JaxSlamError
 
 
-def _robust_kernel(spec: str | None):  # noqa: ANN202
+def _robust_kernel(spec: str | None):
     from .core import KERNELS
 
     if not spec:
@@ -33,7 +33,7 @@ def _robust_kernel(spec: str | None):  # noqa: ANN202
     return KERNELS[name](scale)
 
 
-def initial_values_for(graph, init: str):  # noqa: ANN001, ANN201
+def initial_values_for(graph, init: str):
     """Initial values of a pose graph: as read (``file``) or by chordal relaxation."""
     import numpy as np
 
@@ -76,8 +76,14 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     solver = Solver(factors, values, config)
     t_analyse = time.perf_counter() - t0
-    with tqdm(total=args.max_iterations, desc=f"{args.solver.upper()}", unit="it", disable=args.quiet,
-              file=sys.stderr, leave=False) as bar:
+    with tqdm(
+        total=args.max_iterations,
+        desc=f"{args.solver.upper()}",
+        unit="it",
+        disable=args.quiet,
+        file=sys.stderr,
+        leave=False,
+    ) as bar:
 
         def progress(it: int, cost: float) -> None:
             bar.n = it
@@ -90,7 +96,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         write_g2o(args.output, out_graph)
     summary = {
         "input": str(args.input),
-        "vertices": int(len(graph.vertex_ids)),
+        "vertices": len(graph.vertex_ids),
         "edges": int(graph.num_edges),
         "init": args.init,
         "solver": args.solver,
@@ -119,7 +125,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
     return 0 if result.success else 2
 
 
-def _ape_rmse(gt, est) -> float:  # noqa: ANN001
+def _ape_rmse(gt, est) -> float:
     """Translation RMSE without alignment (both trajectories start at the anchored pose)."""
     import numpy as np
 
@@ -132,6 +138,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import matplotlib
 
     matplotlib.use("Agg")
+    import jax.numpy as jnp
     import matplotlib.pyplot as plt
     import numpy as np
 
@@ -150,13 +157,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
     info[:, np.arange(6), np.arange(6)] = 1.0 / sim.sigmas**2
     ids, chained = chain_odometry(3, sim.edges_i[~sim.is_loop], sim.edges_j[~sim.is_loop], sim.measured[~sim.is_loop])
     # anchor: the first pose at its true value (a known start, as a surveyed entrance gives)
-    chained = np.asarray((SE3(sim.ground_truth[:1]) @ SE3(chained)).params)
-    graph = PoseGraph.from_arrays(3, Values.create({Pose3Var(ids): chained}), sim.edges_i, sim.edges_j,
-                                  sim.measured, info, initialised_from="odometry")
+    chained = np.asarray((SE3(jnp.asarray(sim.ground_truth[:1])) @ SE3(jnp.asarray(chained))).params)
+    graph = PoseGraph.from_arrays(
+        3,
+        Values.create({Pose3Var(ids): chained}),
+        sim.edges_i,
+        sim.edges_j,
+        sim.measured,
+        info,
+        initialised_from="odometry",
+    )
     first = Pose3Var(ids[:1])
     factors = [*graph.factors, PriorFactor.create(first, sim.ground_truth[:1], Gaussian.isotropic(6, 1e-6))]
-    print(f"demo: synthetic tunnel {args.length:.0f} m out and back, {len(ids)} keyframes, "
-          f"{int((~sim.is_loop).sum())} odometry + {int(sim.is_loop.sum())} loop-closure factors (seed {args.seed})")
+    print(
+        f"demo: synthetic tunnel {args.length:.0f} m out and back, {len(ids)} keyframes, "
+        f"{int((~sim.is_loop).sum())} odometry + {int(sim.is_loop.sum())} loop-closure factors (seed {args.seed})"
+    )
     solver = Solver(factors, graph.values, SolverConfig(method="lm"))
     result = solver.solve()
     opt = np.asarray(result.values.params(Pose3Var))
@@ -170,23 +186,36 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"{'estimate':<18}{'APE RMSE m':>12}{'end error m':>13}{'end err / path':>16}")
     for name, (_, ape, end) in rows.items():
         print(f"{name:<18}{ape:>12.4f}{end:>13.4f}{100 * end / path_len:>15.3f}%")
-    print(f"cost {result.initial_cost:.6g} -> {result.final_cost:.6g} in {result.iterations} iterations "
-          f"[{result.status.value}], {t_total:.2f} s total including JIT compilation")
+    print(
+        f"cost {result.initial_cost:.6g} -> {result.final_cost:.6g} in {result.iterations} iterations "
+        f"[{result.status.value}], {t_total:.2f} s total including JIT compilation"
+    )
     stamps = sim.timestamps
-    write_tum(out / "ground_truth_tum.txt", Trajectory(stamps, SE3(gt)))
-    write_tum(out / "odometry_tum.txt", Trajectory(stamps, SE3(chained)))
-    write_tum(out / "trajectory_tum.txt", Trajectory(stamps, SE3(opt)))
+    write_tum(out / "ground_truth_tum.txt", Trajectory(stamps, SE3(jnp.asarray(gt))))
+    write_tum(out / "odometry_tum.txt", Trajectory(stamps, SE3(jnp.asarray(chained))))
+    write_tum(out / "trajectory_tum.txt", Trajectory(stamps, SE3(jnp.asarray(opt))))
     write_g2o(out / "graph_optimised.g2o", graph.with_values(result.values))
     metrics = {
-        "keyframes": len(ids), "odometry_factors": int((~sim.is_loop).sum()), "loop_factors": int(sim.is_loop.sum()),
-        "path_length_m": path_len, "initial_cost": result.initial_cost, "final_cost": result.final_cost,
-        "iterations": result.iterations, "status": result.status.value, "runtime_s": t_total,
-        "ape_rmse_m": {k: v[1] for k, v in rows.items()}, "end_error_m": {k: v[2] for k, v in rows.items()},
+        "keyframes": len(ids),
+        "odometry_factors": int((~sim.is_loop).sum()),
+        "loop_factors": int(sim.is_loop.sum()),
+        "path_length_m": path_len,
+        "initial_cost": result.initial_cost,
+        "final_cost": result.final_cost,
+        "iterations": result.iterations,
+        "status": result.status.value,
+        "runtime_s": t_total,
+        "ape_rmse_m": {k: v[1] for k, v in rows.items()},
+        "end_error_m": {k: v[2] for k, v in rows.items()},
         "note": "APE without alignment: the first pose is anchored at ground truth",
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     fig, ax = plt.subplots(2, 1, figsize=(11, 7), gridspec_kw={"height_ratios": [1, 1.3]})
-    for name, arr, style in [("ground truth", gt, "k-"), ("chained odometry", chained, "r--"), ("jaxslam LM", opt, "b-")]:
+    for name, arr, style in [
+        ("ground truth", gt, "k-"),
+        ("chained odometry", chained, "r--"),
+        ("jaxslam LM", opt, "b-"),
+    ]:
         ax[0].plot(arr[:, 4], arr[:, 5], style, label=name, lw=1.2)
     for i, j in zip(sim.edges_i[sim.is_loop], sim.edges_j[sim.is_loop]):
         ax[0].plot(gt[[i, j], 4], gt[[i, j], 5], color="0.7", lw=0.5)
@@ -205,8 +234,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     fig.tight_layout()
     fig.savefig(out / "trajectory.png", dpi=110)
     plt.close(fig)
-    print(f"wrote {out}/: trajectory_tum.txt, odometry_tum.txt, ground_truth_tum.txt, graph_optimised.g2o, "
-          "metrics.json, trajectory.png")
+    print(
+        f"wrote {out}/: trajectory_tum.txt, odometry_tum.txt, ground_truth_tum.txt, graph_optimised.g2o, "
+        "metrics.json, trajectory.png"
+    )
     return 0 if result.success else 2
 
 
@@ -222,10 +253,17 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("input", help="pose graph: .g2o, or GTSAM's .graph / EDGE3 .txt")
     o.add_argument("-o", "--output", help="write the optimised graph (g2o, full float64 precision)")
     o.add_argument("--solver", choices=["lm", "gn"], default="lm", help="Levenberg-Marquardt (default) or Gauss-Newton")
-    o.add_argument("--init", choices=["file", "chordal"], default="file",
-                   help="initial values: as in the file (or chained odometry), or chordal relaxation")
-    o.add_argument("--robust", metavar="KERNEL[:K]",
-                   help="robust kernel on every edge: huber, cauchy, geman-mcclure, tukey (e.g. cauchy:1.0)")
+    o.add_argument(
+        "--init",
+        choices=["file", "chordal"],
+        default="file",
+        help="initial values: as in the file (or chained odometry), or chordal relaxation",
+    )
+    o.add_argument(
+        "--robust",
+        metavar="KERNEL[:K]",
+        help="robust kernel on every edge: huber, cauchy, geman-mcclure, tukey (e.g. cauchy:1.0)",
+    )
     o.add_argument("--linear-solver", default="auto", choices=["auto", "pardiso", "cholmod", "splu", "pcg"])
     o.add_argument("--max-iterations", type=int, default=100)
     o.add_argument("--json", metavar="PATH", help="also write the summary as JSON")

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, TypeVar, dataclass_transform
 
 import jax
 import jax.numpy as jnp
@@ -39,12 +39,13 @@ from ._variables import Variable
 F = TypeVar("F", bound=type)
 
 
+@dataclass_transform(kw_only_default=True, frozen_default=True)
 def factor_dataclass(cls: F) -> F:
     """Make a Factor subclass a frozen keyword-only dataclass registered as a PyTree."""
-    cls = dataclasses.dataclass(frozen=True, kw_only=True)(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
-    return cls
+    dc: Any = dataclasses.dataclass(frozen=True, kw_only=True)(cls)
+    names = [f.name for f in dataclasses.fields(dc)]
+    jax.tree_util.register_dataclass(dc, data_fields=names, meta_fields=[])
+    return dc
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..lie import SE3
@@ -54,6 +55,7 @@ def tunnel_pose_graph(
     rng = np.random.default_rng(seed)
     half = length / 2
     s_out = np.arange(0.0, half, step)
+
     # centre line: gentle curve and slope
     def centre(s: np.ndarray) -> np.ndarray:
         return np.stack([s, 1.5 * np.sin(s / half * np.pi), 0.02 * s], axis=-1)
@@ -72,7 +74,7 @@ def tunnel_pose_graph(
     quats = np.concatenate([_yaw_pitch_quat(yaw_o, pitch_o), _yaw_pitch_quat(yaw_b + np.pi, -pitch_b)])
     gt = np.concatenate([quats, positions], axis=1)
     n = len(gt)
-    gt_se3 = SE3(gt)
+    gt_se3 = SE3(jnp.asarray(gt))
 
     def noisy_between(i: np.ndarray, j: np.ndarray, sig: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
         rel = gt_se3[i].inverse() @ gt_se3[j]

@@ -17,6 +17,6 @@ __all__ = [
     "optimize",
     "pcg_solve",
 ]
-from ._initialize import chordal_initialize_se2, chordal_initialize_se3  # noqa: E402
+from ._initialize import chordal_initialize_se2, chordal_initialize_se3
 
 __all__ += ["chordal_initialize_se2", "chordal_initialize_se3"]

@@ -49,26 +49,42 @@ def _matrix_to_quat(m: np.ndarray) -> np.ndarray:
         a = m[s]
         if case == 0:
             r = np.sqrt(1 + tr[s]) * 2
-            q[s] = np.stack([0.25 * r, (a[:, 2, 1] - a[:, 1, 2]) / r, (a[:, 0, 2] - a[:, 2, 0]) / r,
-                             (a[:, 1, 0] - a[:, 0, 1]) / r], 1)
+            q[s] = np.stack(
+                [0.25 * r, (a[:, 2, 1] - a[:, 1, 2]) / r, (a[:, 0, 2] - a[:, 2, 0]) / r, (a[:, 1, 0] - a[:, 0, 1]) / r],
+                1,
+            )
         elif case == 1:
             r = np.sqrt(1 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2]) * 2
-            q[s] = np.stack([(a[:, 2, 1] - a[:, 1, 2]) / r, 0.25 * r, (a[:, 0, 1] + a[:, 1, 0]) / r,
-                             (a[:, 0, 2] + a[:, 2, 0]) / r], 1)
+            q[s] = np.stack(
+                [(a[:, 2, 1] - a[:, 1, 2]) / r, 0.25 * r, (a[:, 0, 1] + a[:, 1, 0]) / r, (a[:, 0, 2] + a[:, 2, 0]) / r],
+                1,
+            )
         elif case == 2:
             r = np.sqrt(1 - a[:, 0, 0] + a[:, 1, 1] - a[:, 2, 2]) * 2
-            q[s] = np.stack([(a[:, 0, 2] - a[:, 2, 0]) / r, (a[:, 0, 1] + a[:, 1, 0]) / r, 0.25 * r,
-                             (a[:, 1, 2] + a[:, 2, 1]) / r], 1)
+            q[s] = np.stack(
+                [(a[:, 0, 2] - a[:, 2, 0]) / r, (a[:, 0, 1] + a[:, 1, 0]) / r, 0.25 * r, (a[:, 1, 2] + a[:, 2, 1]) / r],
+                1,
+            )
         else:
             r = np.sqrt(1 - a[:, 0, 0] - a[:, 1, 1] + a[:, 2, 2]) * 2
-            q[s] = np.stack([(a[:, 1, 0] - a[:, 0, 1]) / r, (a[:, 0, 2] + a[:, 2, 0]) / r,
-                             (a[:, 1, 2] + a[:, 2, 1]) / r, 0.25 * r], 1)
+            q[s] = np.stack(
+                [(a[:, 1, 0] - a[:, 0, 1]) / r, (a[:, 0, 2] + a[:, 2, 0]) / r, (a[:, 1, 2] + a[:, 2, 1]) / r, 0.25 * r],
+                1,
+            )
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return np.where(q[:, :1] < 0, -q, q)
 
 
-def _solve_anchored(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, nrow: int, n_unknown: int,
-                    rhs: np.ndarray, fixed: np.ndarray, fixed_value: np.ndarray) -> np.ndarray:
+def _solve_anchored(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    vals: np.ndarray,
+    nrow: int,
+    n_unknown: int,
+    rhs: np.ndarray,
+    fixed: np.ndarray,
+    fixed_value: np.ndarray,
+) -> np.ndarray:
     """Least squares ``A x = rhs`` with the unknowns ``fixed`` set to ``fixed_value``."""
     a = sp.csr_matrix((vals, (rows, cols)), shape=(nrow, n_unknown))
     free = np.ones(n_unknown, bool)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -61,7 +62,7 @@ class SparseSystem:
         self.indices = indices
         self.indptr = indptr
         self.diag_pos = diag_pos
-        self._factor = None
+        self._factor: Any = None
         self._cols = None
         if method == "pcg":
             counts = np.diff(indptr)
@@ -72,7 +73,9 @@ class SparseSystem:
     def matrix(self, hdata: np.ndarray) -> sp.csc_matrix:
         return sp.csc_matrix((hdata, self.indices, self.indptr), shape=(self.n, self.n))
 
-    def solve(self, hdata: Array | np.ndarray, rhs: Array | np.ndarray, damping: np.ndarray | None = None) -> np.ndarray | None:
+    def solve(
+        self, hdata: Array | np.ndarray, rhs: Array | np.ndarray, damping: np.ndarray | None = None
+    ) -> np.ndarray | None:
         """Solve ``(H + diag(damping)) x = rhs``; ``None`` if not positive definite."""
         if self.method == "pcg":
             d = jnp.zeros(self.n) if damping is None else jnp.asarray(damping)
@@ -151,11 +154,11 @@ def pcg_solve(
     rz0 = r0 @ z0
     bnorm = jnp.linalg.norm(rhs)
 
-    def cond(state: tuple[Array, ...]) -> Array:
+    def cond(state: Any) -> Array:
         _, r, _, _, k, bad = state
         return (jnp.linalg.norm(r) > tol * bnorm) & (k < maxiter) & ~bad
 
-    def body(state: tuple[Array, ...]) -> tuple[Array, ...]:
+    def body(state: Any) -> Any:
         x, r, p, rz, k, _ = state
         ap = matvec(p)
         pap = p @ ap
@@ -168,7 +171,7 @@ def pcg_solve(
         p = z + (rz_new / rz) * p
         return x, r, p, rz_new, k + 1, bad
 
-    x, r, _, _, _, bad = jax.lax.while_loop(cond, body, (x0, r0, z0, rz0, jnp.array(0), jnp.array(False)))
+    x, _, _, _, _, bad = jax.lax.while_loop(cond, body, (x0, r0, z0, rz0, jnp.array(0), jnp.array(False)))
     # An inexact (maxiter) step is still a descent direction for LM; only breakdown fails.
     ok = ~bad & jnp.all(jnp.isfinite(x))
     return x, ok

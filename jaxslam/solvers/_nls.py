@@ -221,8 +221,9 @@ class Solver:
         history: list[float],
         throw: bool,
     ) -> SolverResult:
-        res = SolverResult(values, status, message, c0, c1, iters, solves, time.perf_counter() - t0, history,
-                           list(self._times))
+        res = SolverResult(
+            values, status, message, c0, c1, iters, solves, time.perf_counter() - t0, history, list(self._times)
+        )
         if throw and not res.success:
             raise (GraphError if status is Status.GAUGE_FREE else SolverError)(message)
         return res
@@ -237,8 +238,9 @@ class Solver:
         self._times.append(time.perf_counter() - self._t0)
         if self.config.verbose:
             print(f"iteration {it}: cost {cost:.10g}")
-        if getattr(self, "_callback", None) is not None:
-            self._callback(it, cost)
+        callback = getattr(self, "_callback", None)
+        if callback is not None:
+            callback(it, cost)
 
     def _converged(self, old: float, new: float, step: np.ndarray) -> bool:
         c = self.config
@@ -256,14 +258,27 @@ class Solver:
         history = [cost]
         self._times.append(time.perf_counter() - self._t0)
         if not np.isfinite(cost):
-            return self._finish(self.problem.unpad_values(params), Status.NONFINITE, "initial cost is not finite",
-                                c0, cost, 0, 0, t0, history, throw)
+            return self._finish(
+                self.problem.unpad_values(params),
+                Status.NONFINITE,
+                "initial cost is not finite",
+                c0,
+                cost,
+                0,
+                0,
+                t0,
+                history,
+                throw,
+            )
         status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
         it = 0
         for it in range(1, c.max_iterations + 1):
             step = self.system.solve(hdata, -grad)
             if step is None:
-                status, msg = Status.INDEFINITE, "the Gauss-Newton system is not positive definite (a variable is under-constrained)"
+                status, msg = (
+                    Status.INDEFINITE,
+                    "the Gauss-Newton system is not positive definite (a variable is under-constrained)",
+                )
                 break
             params = self.retract(params, step)
             new_h, new_g, new_cost = self.linearize(params)
@@ -286,8 +301,18 @@ class Solver:
         history = [cost]
         self._times.append(time.perf_counter() - self._t0)
         if not np.isfinite(cost):
-            return self._finish(self.problem.unpad_values(params), Status.NONFINITE, "initial cost is not finite",
-                                c0, cost, 0, 0, t0, history, throw)
+            return self._finish(
+                self.problem.unpad_values(params),
+                Status.NONFINITE,
+                "initial cost is not finite",
+                c0,
+                cost,
+                0,
+                0,
+                t0,
+                history,
+                throw,
+            )
         lam, nu = c.initial_lambda, 2.0
         status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
         solves = 0

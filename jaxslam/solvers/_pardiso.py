@@ -12,6 +12,7 @@ lower-triangle CSC arrays read row-wise (``H`` is symmetric).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import glob
 import os
@@ -31,7 +32,7 @@ def _load() -> ctypes.CDLL | None:
     global _LIB
     if _LIB is not None:
         return _LIB
-    candidates = [os.environ.get("JAXSLAM_MKL_RT"), find_library("mkl_rt")]
+    candidates: list[str | None] = [os.environ.get("JAXSLAM_MKL_RT"), find_library("mkl_rt")]
     for base in (sys.prefix, site.getuserbase()):
         candidates += sorted(glob.glob(f"{base}/lib/libmkl_rt.so*"), key=len)
     for path in candidates:
@@ -40,8 +41,24 @@ def _load() -> ctypes.CDLL | None:
         try:
             lib = ctypes.CDLL(path)
             lib.pardiso.restype = None
-            lib.pardiso.argtypes = [_I64P, _I32P, _I32P, _I32P, _I32P, _I32P, _F64P, _I32P, _I32P,
-                                    _I32P, _I32P, _I32P, _I32P, _F64P, _F64P, _I32P]
+            lib.pardiso.argtypes = [
+                _I64P,
+                _I32P,
+                _I32P,
+                _I32P,
+                _I32P,
+                _I32P,
+                _F64P,
+                _I32P,
+                _I32P,
+                _I32P,
+                _I32P,
+                _I32P,
+                _I32P,
+                _F64P,
+                _F64P,
+                _I32P,
+            ]
             _LIB = lib
             return lib
         except (OSError, AttributeError):
@@ -131,14 +148,10 @@ class Pardiso:
 
     def release(self) -> None:
         if self._analyzed:
-            try:
+            with contextlib.suppress(RuntimeError):
                 self._call(-1, np.zeros(max(len(self.indices), 1)))
-            except RuntimeError:
-                pass
             self._analyzed = False
 
     def __del__(self) -> None:  # pragma: no cover - best effort
-        try:
+        with contextlib.suppress(Exception):
             self.release()
-        except Exception:
-            pass

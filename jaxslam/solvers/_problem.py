@@ -264,15 +264,13 @@ class Problem:
             cap = s.capacity
             tgt_blocks = []
             for key in gk:
-                t = np.where(key >= 0, np.searchsorted(uniq, np.maximum(key, 0)), self.nnz)
-                t = np.concatenate([t, np.full((cap - s.num, t.shape[1]), self.nnz)], axis=0)
-                tgt_blocks.append(t)
+                tg = np.where(key >= 0, np.searchsorted(uniq, np.maximum(key, 0)), self.nnz)
+                tg = np.concatenate([tg, np.full((cap - s.num, tg.shape[1]), self.nnz)], axis=0)
+                tgt_blocks.append(tg)
             hess_targets = np.concatenate(tgt_blocks, axis=1).reshape(-1)
             grad_t = np.concatenate([self.dof_index[t][r] for t, r in zip(s.var_types, rows)], axis=1)
             grad_t = np.concatenate([grad_t, np.full((cap - s.num, grad_t.shape[1]), n)], axis=0).reshape(-1)
-            prow = tuple(
-                jnp.asarray(np.concatenate([r, np.full(cap - s.num, r[0])]), dtype=jnp.int32) for r in rows
-            )
+            prow = tuple(jnp.asarray(np.concatenate([r, np.full(cap - s.num, r[0])]), dtype=jnp.int32) for r in rows)
             mask = np.zeros(cap, bool)
             mask[: s.num] = True
             padded = jax.tree_util.tree_map(lambda leaf, _n=s.num, _c=cap: _pad_leaf(leaf, _n, _c), f)
@@ -304,9 +302,7 @@ class Problem:
     def free_gauge_components(self) -> list[str]:
         """Connected components of the variable graph with no unary factor: their gauge
         (global position/orientation) is not fixed. Returns a description of each."""
-        return [
-            self.describe_block(int(b)) + f" and {n - 1} more" for b, n in zip(*self._free_gauge())
-        ]
+        return [self.describe_block(int(b)) + f" and {n - 1} more" for b, n in zip(*self._free_gauge())]
 
     def free_gauge_blocks(self) -> list[int]:
         """The first variable (block) of every component whose gauge is free."""
@@ -399,9 +395,9 @@ def assemble(
         lin = linearize(g.factor, _gather(params, s, g), g.mask)
         blocks = jnp.concatenate(_block_products(lin.jacobians, len(s.var_types)), axis=1).reshape(-1)
         hdata = hdata.at[g.hess_targets].add(blocks)
-        gvec = jnp.concatenate(
-            [jnp.sum(j * lin.residual[:, :, None], axis=1) for j in lin.jacobians], axis=1
-        ).reshape(-1)
+        gvec = jnp.concatenate([jnp.sum(j * lin.residual[:, :, None], axis=1) for j in lin.jacobians], axis=1).reshape(
+            -1
+        )
         grad = grad.at[g.grad_targets].add(gvec)
         cost = cost + jnp.sum(lin.cost)
     return hdata, grad[:ndof], cost

@@ -56,6 +56,7 @@ def test_linear_point_chain_matches_least_squares() -> None:
     res = optimize(factors, values, SolverConfig(method="gn"))
     # dense normal equations by hand
     rows, rhs, w = [], [], []
+
     def add(coefs, b, sigma):
         for d in range(3):
             row = np.zeros(3 * n)
@@ -63,6 +64,7 @@ def test_linear_point_chain_matches_least_squares() -> None:
                 row[3 * idx + d] = c
             rows.append(row / sigma)
             rhs.append(b[d] / sigma)
+
     add([(0, 1.0)], p0, 0.1)
     add([(n - 1, 1.0)], p0 + z.sum(0) + 1.0, 0.5)
     for k in range(n - 1):
@@ -117,9 +119,7 @@ def test_sphere2500_chordal_lm_beats_gtsam_lm() -> None:
     graph = read_g2o(gtsam.findExampleDataFile("sphere2500.txt"))
     factors = _anchored(graph)
     gt_graph, gt_init = to_gtsam(factors, graph.values)
-    init = chordal_initialize_se3(
-        graph.vertex_ids, graph.edges_i, graph.edges_j, graph.measured, graph.information
-    )
+    init = chordal_initialize_se3(graph.vertex_ids, graph.edges_i, graph.edges_j, graph.measured, graph.information)
     v0 = Values.create({Pose3Var(graph.vertex_ids): init})
     assert gt_graph.error(values_to_gtsam(v0)) < 0.01 * gt_graph.error(gt_init)
     res = optimize(factors, v0, SolverConfig(method="lm"), throw=True)
@@ -203,7 +203,9 @@ def test_disconnected_components_each_need_an_anchor() -> None:
 
 def test_missing_variable_and_empty_graph() -> None:
     values = Values.create({Pose3Var(np.arange(2)): SE3.identity((2,))})
-    f = BetweenFactor.create(Pose3Var(np.array([0])), Pose3Var(np.array([7])), SE3.identity((1,)), Gaussian.isotropic(6, 1))
+    f = BetweenFactor.create(
+        Pose3Var(np.array([0])), Pose3Var(np.array([7])), SE3.identity((1,)), Gaussian.isotropic(6, 1)
+    )
     with pytest.raises(GraphError, match="Pose3Var 7"):
         Problem([f], values)
     with pytest.raises(GraphError, match="no factors"):
@@ -214,7 +216,9 @@ def test_nan_initial_values_give_status_not_crash() -> None:
     values = Values.create({Pose3Var(np.arange(2)): jnp.full((2, 7), jnp.nan)})
     f = [
         PriorFactor.create(Pose3Var(np.array([0])), SE3.identity((1,)), Gaussian.isotropic(6, 1)),
-        BetweenFactor.create(Pose3Var(np.array([0])), Pose3Var(np.array([1])), SE3.identity((1,)), Gaussian.isotropic(6, 1)),
+        BetweenFactor.create(
+            Pose3Var(np.array([0])), Pose3Var(np.array([1])), SE3.identity((1,)), Gaussian.isotropic(6, 1)
+        ),
     ]
     res = optimize(f, values)
     assert res.status is Status.NONFINITE
@@ -223,7 +227,9 @@ def test_nan_initial_values_give_status_not_crash() -> None:
 
 
 def test_wrong_leading_dimension_is_named() -> None:
-    f = BetweenFactor.create(Pose3Var(np.arange(3)), Pose3Var(np.arange(1, 4)), SE3.identity((3,)), Gaussian.isotropic(6, 1))
+    f = BetweenFactor.create(
+        Pose3Var(np.arange(3)), Pose3Var(np.arange(1, 4)), SE3.identity((3,)), Gaussian.isotropic(6, 1)
+    )
     bad = dataclasses.replace(f, measured=f.measured[:2])
     values = Values.create({Pose3Var(np.arange(4)): SE3.identity((4,))})
     with pytest.raises(ValueError, match="measured"):
