@@ -15,6 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from ..lie import mm, mv
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -29,11 +31,11 @@ class Gaussian:
 
     def whiten(self, r: Array) -> Array:
         """``(N, r) -> (N, r)``."""
-        return jnp.einsum("nij,nj->ni", self.sqrt_info, r)
+        return mv(self.sqrt_info, r)
 
     def whiten_jacobian(self, jac: Array) -> Array:
         """``(N, r, t) -> (N, r, t)``."""
-        return jnp.einsum("nij,njk->nik", self.sqrt_info, jac)
+        return mm(self.sqrt_info, jac)
 
     def covariance(self) -> Array:
         info = jnp.einsum("nki,nkj->nij", self.sqrt_info, self.sqrt_info)
@@ -49,9 +51,13 @@ class Gaussian:
     # --- constructors (GTSAM's vocabulary) ---------------------------------------------
     @staticmethod
     def isotropic(dim: int, sigma: float | Array, n: int = 1) -> Gaussian:
+        """From one sigma (repeated ``n`` times) or ``(N,)`` sigmas, one per constraint."""
         sigma = jnp.asarray(sigma, dtype=jnp.float64)
-        r = jnp.eye(dim) / sigma[..., None, None] if sigma.ndim else jnp.eye(dim) / sigma
-        return Gaussian(jnp.broadcast_to(r, (n, dim, dim)))
+        r = jnp.broadcast_to(jnp.eye(dim), (*sigma.shape, dim, dim)) / sigma[..., None, None]
+        r = r.reshape(-1, dim, dim)
+        if r.shape[0] == 1:
+            r = jnp.broadcast_to(r, (n, dim, dim))
+        return Gaussian(r)
 
     @staticmethod
     def diagonal(sigmas: Array, n: int | None = None) -> Gaussian:

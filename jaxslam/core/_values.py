@@ -21,7 +21,7 @@ from ._variables import Variable
 class _Ids:
     """Hashable wrapper of a sorted id array, so ids can be PyTree static data."""
 
-    __slots__ = ("array", "_hash")
+    __slots__ = ("_hash", "array")
 
     def __init__(self, array: np.ndarray):
         self.array = array
@@ -118,7 +118,8 @@ class Values:
 
     def get(self, var: Variable) -> Any:
         """The values of ``var``'s ids, wrapped as the type's Lie group (or array)."""
-        return type(var).wrap(self._params[type(var)][self.rows(var)])
+        rows = self.rows(var)  # first: GraphError, not KeyError, for a type with no values
+        return type(var).wrap(self._params[type(var)][rows])
 
     def with_params(self, vtype: type[Variable], params: Array) -> Values:
         new = dict(self._params)

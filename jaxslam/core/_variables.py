@@ -30,9 +30,12 @@ from jax import Array
 from ..lie import SE2, SE3, SO3, LieGroup
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Variable:
-    """A batch of ids of one variable type. A PyTree with the ids as its one leaf."""
+    """A batch of ids of one variable type. A PyTree with the ids as its one leaf.
+
+    Compared and hashed by identity (``eq=False``), so instances can key the dict given to
+    :meth:`Values.create` (a field-wise hash would fail on the id array)."""
 
     ids: Any
 
@@ -47,7 +50,7 @@ class Variable:
     def __post_init__(self) -> None:
         # Only user-facing containers are validated: PyTree unflattening passes tracers,
         # vmap axis specs and other placeholders through here too.
-        if isinstance(self.ids, (np.ndarray, list, tuple)) and not isinstance(self.ids, np.ndarray) or (
+        if (isinstance(self.ids, (np.ndarray, list, tuple)) and not isinstance(self.ids, np.ndarray)) or (
             isinstance(self.ids, np.ndarray) and self.ids.dtype != object
         ):
             ids = np.asarray(self.ids)

@@ -18,6 +18,7 @@ import numpy as np
 from jax import Array
 
 from ..core import Factor, Gaussian, RobustKernel, Variable, factor_dataclass
+from ..lie import mm
 
 
 def _broadcast_measurement(var_type: type[Variable], measured: Any, n: int) -> Array:
@@ -123,4 +124,4 @@ class BetweenFactor(Factor):
             return (-eye, eye)
         e = self.residual(xi, xj)
         jinv = vtype.group.jr_inv(e)
-        return (-jinv @ (xj.inverse() @ xi).adjoint(), jinv)
+        return (-mm(jinv, (xj.inverse() @ xi).adjoint()), jinv)

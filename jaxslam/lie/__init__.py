@@ -18,6 +18,6 @@ from ._se2 import SE2
 from ._se3 import SE3
 from ._so2 import SO2
 from ._so3 import SO3
-from ._utils import skew
+from ._utils import mm, mT, mv, skew
 
-__all__ = ["SE2", "SE3", "SO2", "SO3", "LieGroup", "skew"]
+__all__ = ["SE2", "SE3", "SO2", "SO3", "LieGroup", "mT", "mm", "mv", "skew"]

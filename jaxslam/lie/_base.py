@@ -57,7 +57,8 @@ class LieGroup:
         raise NotImplementedError
 
     def act(self, points: Array) -> Array:
-        """Apply the group action to points of shape ``(*batch, space_dim)``."""
+        """Apply the group action to points of shape ``(*batch, space_dim)``; the batch axes
+        of the group and the points broadcast against each other."""
         raise NotImplementedError
 
     def as_matrix(self) -> Array:

@@ -23,9 +23,7 @@ from ._utils import batch_shape_check, series_or
 
 def _coef_a(theta_sq: Array) -> Array:
     """sin(theta) / theta."""
-    return series_or(
-        theta_sq, lambda t: jnp.sin(t) / t, (1.0, -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0)
-    )
+    return series_or(theta_sq, lambda t: jnp.sin(t) / t, (1.0, -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0, 1.0 / 362880.0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +95,9 @@ class SE2(LieGroup):
 
     def act(self, points: Array) -> Array:
         points = jnp.asarray(points)
-        return self.rotation.act(points) + self.translation
+        batch_shape_check("SE2.act", points, 2)
+        params, points = broadcast_params(self.params, points)
+        return SO2(params[..., :2]).act(points) + params[..., 2:]
 
     def as_matrix(self) -> Array:
         r = self.rotation.as_matrix()
@@ -108,6 +108,8 @@ class SE2(LieGroup):
     @classmethod
     def from_matrix(cls, matrix: Array) -> SE2:
         m = jnp.asarray(matrix)
+        if m.ndim < 2 or m.shape[-2:] != (3, 3):
+            raise ValueError(f"SE2.from_matrix expects (*batch, 3, 3), got {tuple(m.shape)}")
         rot = SO2.from_matrix(m[..., :2, :2])
         rp, tp = broadcast_params(rot.params, m[..., :2, 2])
         return cls(jnp.concatenate([rp, tp], axis=-1))

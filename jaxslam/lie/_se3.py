@@ -18,7 +18,7 @@ from jax import Array
 
 from ._base import LieGroup, broadcast_params
 from ._so3 import SO3, _coef_b, _coef_c, _coef_jrinv, quat_multiply, quat_rotate
-from ._utils import batch_shape_check, safe_norm, series_or, skew
+from ._utils import batch_shape_check, mm, safe_norm, series_or, skew
 
 
 def _coef_q2(theta_sq: Array) -> Array:
@@ -26,7 +26,7 @@ def _coef_q2(theta_sq: Array) -> Array:
     return series_or(
         theta_sq,
         lambda t: (t * t + 2.0 * jnp.cos(t) - 2.0) / (2.0 * t**4),
-        (1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0, -1.0 / 3628800.0),
+        (1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0, -1.0 / 3628800.0, 1.0 / 479001600.0),
     )
 
 
@@ -35,7 +35,7 @@ def _coef_q3(theta_sq: Array) -> Array:
     return series_or(
         theta_sq,
         lambda t: (2.0 * t - 3.0 * jnp.sin(t) + t * jnp.cos(t)) / (2.0 * t**5),
-        (1.0 / 120.0, -1.0 / 2520.0, 1.0 / 120960.0, -1.0 / 9979200.0),
+        (1.0 / 120.0, -1.0 / 2520.0, 1.0 / 120960.0, -1.0 / 9979200.0, 1.0 / 1245404160.0),
     )
 
 
@@ -44,18 +44,18 @@ def _q_matrix(omega: Array, rho: Array) -> Array:
     theta_sq, _ = safe_norm(omega)
     w = skew(omega)
     r = skew(rho)
-    wr = w @ r
-    rw = r @ w
-    wrw = wr @ w
-    ww = w @ w
+    wr = mm(w, r)
+    rw = mm(r, w)
+    wrw = mm(wr, w)
+    ww = mm(w, w)
     c1 = _coef_c(theta_sq)[..., None, None]
     c2 = _coef_q2(theta_sq)[..., None, None]
     c3 = _coef_q3(theta_sq)[..., None, None]
     return (
         0.5 * r
         + c1 * (wr + rw + wrw)
-        + c2 * (ww @ r + rw @ w - 3.0 * wrw)
-        + c3 * (wrw @ w + w @ wrw)
+        + c2 * (mm(ww, r) + mm(rw, w) - 3.0 * wrw)
+        + c3 * (mm(wrw, w) + mm(w, wrw))
     )
 
 
@@ -105,7 +105,7 @@ class SE3(LieGroup):
         v_rho = (
             rho
             + _coef_b(theta_sq)[..., None] * jnp.cross(omega, rho)
-            + _coef_c(theta_sq)[..., None] * (w @ (w @ rho[..., None]))[..., 0]
+            + _coef_c(theta_sq)[..., None] * jnp.cross(omega, jnp.cross(omega, rho))
         )
         return cls(jnp.concatenate([SO3.exp(omega).params, v_rho], axis=-1))
 
@@ -125,13 +125,15 @@ class SE3(LieGroup):
         return SE3(jnp.concatenate([q, t], axis=-1))
 
     def inverse(self) -> SE3:
-        q_inv = self.params[..., :4] * jnp.array([1.0, -1.0, -1.0, -1.0])
+        q_inv = jnp.concatenate([self.params[..., :1], -self.params[..., 1:4]], axis=-1)
         t = -quat_rotate(q_inv, self.params[..., 4:])
         return SE3(jnp.concatenate([q_inv, t], axis=-1))
 
     def act(self, points: Array) -> Array:
         points = jnp.asarray(points)
-        return quat_rotate(self.params[..., :4], points) + self.params[..., 4:]
+        batch_shape_check("SE3.act", points, 3)
+        params, points = broadcast_params(self.params, points)
+        return quat_rotate(params[..., :4], points) + params[..., 4:]
 
     def as_matrix(self) -> Array:
         r = self.rotation.as_matrix()
@@ -150,7 +152,7 @@ class SE3(LieGroup):
     def adjoint(self) -> Array:
         """``[[R, 0], [t^ R, R]]`` for the [omega, rho] order."""
         r = self.rotation.as_matrix()
-        return _block(r, jnp.zeros_like(r), skew(self.translation) @ r, r)
+        return _block(r, jnp.zeros_like(r), mm(skew(self.translation), r), r)
 
     def normalize(self) -> SE3:
         return SE3(jnp.concatenate([self.rotation.normalize().params, self.translation], axis=-1))
@@ -168,4 +170,4 @@ class SE3(LieGroup):
         omega, rho = tangent[..., :3], tangent[..., 3:]
         ji = SO3.jr_inv(omega)
         q = _q_matrix(-omega, -rho)
-        return _block(ji, jnp.zeros_like(ji), -ji @ q @ ji, ji)
+        return _block(ji, jnp.zeros_like(ji), -mm(mm(ji, q), ji), ji)

@@ -52,11 +52,13 @@ class SO2(LieGroup):
         return SO2(jnp.stack([c, s], axis=-1))
 
     def inverse(self) -> SO2:
-        return SO2(self.params * jnp.array([1.0, -1.0]))
+        return SO2(jnp.concatenate([self.params[..., :1], -self.params[..., 1:]], axis=-1))
 
     def act(self, points: Array) -> Array:
         points = jnp.asarray(points)
-        c, s = self.params[..., 0], self.params[..., 1]
+        batch_shape_check("SO2.act", points, 2)
+        params, points = broadcast_params(self.params, points)
+        c, s = params[..., 0], params[..., 1]
         x, y = points[..., 0], points[..., 1]
         return jnp.stack([c * x - s * y, s * x + c * y], axis=-1)
 
@@ -67,6 +69,8 @@ class SO2(LieGroup):
     @classmethod
     def from_matrix(cls, matrix: Array) -> SO2:
         m = jnp.asarray(matrix)
+        if m.ndim < 2 or m.shape[-2:] != (2, 2):
+            raise ValueError(f"SO2.from_matrix expects (*batch, 2, 2), got {tuple(m.shape)}")
         return cls(jnp.stack([m[..., 0, 0], m[..., 1, 0]], axis=-1)).normalize()
 
     def adjoint(self) -> Array:

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from ._base import LieGroup, broadcast_params
-from ._utils import batch_shape_check, safe_norm, series_or, skew
+from ._utils import batch_shape_check, mm, safe_norm, series_or, skew
 
 
 def quat_multiply(a: Array, b: Array) -> Array:
@@ -45,7 +45,7 @@ def quat_rotate(q: Array, p: Array) -> Array:
 def _sin_half_over(theta_sq: Array) -> Array:
     """sin(theta/2) / theta."""
     return series_or(
-        theta_sq, lambda t: jnp.sin(0.5 * t) / t, (0.5, -1.0 / 48.0, 1.0 / 3840.0, -1.0 / 645120.0)
+        theta_sq, lambda t: jnp.sin(0.5 * t) / t, (0.5, -1.0 / 48.0, 1.0 / 3840.0, -1.0 / 645120.0, 1.0 / 185794560.0)
     )
 
 
@@ -54,7 +54,7 @@ def _coef_b(theta_sq: Array) -> Array:
     return series_or(
         theta_sq,
         lambda t: 2.0 * jnp.sin(0.5 * t) ** 2 / (t * t),
-        (0.5, -1.0 / 24.0, 1.0 / 720.0, -1.0 / 40320.0),
+        (0.5, -1.0 / 24.0, 1.0 / 720.0, -1.0 / 40320.0, 1.0 / 3628800.0),
     )
 
 
@@ -63,16 +63,19 @@ def _coef_c(theta_sq: Array) -> Array:
     return series_or(
         theta_sq,
         lambda t: (t - jnp.sin(t)) / (t * t * t),
-        (1.0 / 6.0, -1.0 / 120.0, 1.0 / 5040.0, -1.0 / 362880.0),
+        (1.0 / 6.0, -1.0 / 120.0, 1.0 / 5040.0, -1.0 / 362880.0, 1.0 / 39916800.0),
     )
 
 
 def _coef_jrinv(theta_sq: Array) -> Array:
-    """1/theta^2 - (1 + cos theta) / (2 theta sin theta): the omega^2 coefficient of Jr^-1."""
+    """1/theta^2 - (1 + cos theta) / (2 theta sin theta): the omega^2 coefficient of Jr^-1.
+
+    Evaluated as ``1/theta^2 - cot(theta/2) / (2 theta)`` (the same function): the literal
+    form divides two quantities that both vanish at pi and loses ~eps/(pi - theta) there."""
     return series_or(
         theta_sq,
-        lambda t: 1.0 / (t * t) - (1.0 + jnp.cos(t)) / (2.0 * t * jnp.sin(t)),
-        (1.0 / 12.0, 1.0 / 720.0, 1.0 / 30240.0, 1.0 / 1209600.0),
+        lambda t: 1.0 / (t * t) - 0.5 * jnp.cos(0.5 * t) / (t * jnp.sin(0.5 * t)),
+        (1.0 / 12.0, 1.0 / 720.0, 1.0 / 30240.0, 1.0 / 1209600.0, 1.0 / 47900160.0),
     )
 
 
@@ -116,7 +119,7 @@ class SO3(LieGroup):
         n_sq, n = safe_norm(v)
         small = n_sq < 1e-12
         n_safe = jnp.where(small, 1.0, n)
-        w_safe = jnp.where(small, 1.0, w)
+        w_safe = jnp.where(small, w, 1.0)  # the series sees w only where it is taken
         exact = 2.0 * jnp.arctan2(n_safe, w) / n_safe
         # 2 atan(n / w) / n for n -> 0, with w ~ 1.
         series = 2.0 / w_safe * (1.0 - n_sq / (3.0 * w_safe * w_safe))
@@ -127,11 +130,13 @@ class SO3(LieGroup):
         return SO3(quat_multiply(a, b))
 
     def inverse(self) -> SO3:
-        return SO3(self.params * jnp.array([1.0, -1.0, -1.0, -1.0]))
+        return SO3(jnp.concatenate([self.params[..., :1], -self.params[..., 1:]], axis=-1))
 
     def act(self, points: Array) -> Array:
         points = jnp.asarray(points)
-        return quat_rotate(self.params, points)
+        batch_shape_check("SO3.act", points, 3)
+        params, points = broadcast_params(self.params, points)
+        return quat_rotate(params, points)
 
     def as_matrix(self) -> Array:
         w, x, y, z = (self.params[..., i] for i in range(4))
@@ -183,7 +188,7 @@ class SO3(LieGroup):
         theta_sq, _ = safe_norm(tangent)
         w = skew(tangent)
         eye = jnp.broadcast_to(jnp.eye(3), w.shape)
-        return eye - _coef_b(theta_sq)[..., None, None] * w + _coef_c(theta_sq)[..., None, None] * (w @ w)
+        return eye - _coef_b(theta_sq)[..., None, None] * w + _coef_c(theta_sq)[..., None, None] * mm(w, w)
 
     @staticmethod
     def jr_inv(tangent: Array) -> Array:
@@ -191,4 +196,4 @@ class SO3(LieGroup):
         theta_sq, _ = safe_norm(tangent)
         w = skew(tangent)
         eye = jnp.broadcast_to(jnp.eye(3), w.shape)
-        return eye + 0.5 * w + _coef_jrinv(theta_sq)[..., None, None] * (w @ w)
+        return eye + 0.5 * w + _coef_jrinv(theta_sq)[..., None, None] * mm(w, w)

@@ -14,9 +14,10 @@ import jax.numpy as jnp
 from jax import Array
 
 # Below this angle (radians) the coefficient functions use their Taylor series. The series
-# are kept to the theta^6 term, so at 0.2 the truncation error is < 1e-13 relative, while
-# above it the closed forms' cancellation error is < 1e-13 relative too (eps / theta^2 for
-# the worst coefficient, eps / theta^4 for the SE(3) Q-matrix ones at 0.2: 1.4e-13).
+# are kept to the theta^8 term, so at 0.2 the truncation error is < 1e-15 relative. Above it
+# the closed forms lose ~eps / theta^2 to cancellation (< 1e-13 relative at 0.2), except the
+# SE(3) Q-matrix coefficients, ~100 eps / theta^4 (~1e-11 relative); those multiply
+# theta^3 |rho| or more, so Q itself stays within ~1e-15 |rho|.
 SERIES_ANGLE = 0.2
 
 
@@ -32,6 +33,33 @@ def skew(v: Array) -> Array:
         ],
         axis=-2,
     )
+
+
+def mm(a: Array, b: Array) -> Array:
+    """Batched product of small matrices, ``(*batch, m, k) @ (*batch, k, n)``.
+
+    The contraction is unrolled into ``k`` broadcast multiply-adds, which XLA fuses into one
+    vectorised loop over the batch. On CPU this is ~5x faster than ``jnp.matmul`` for 3x3 and
+    6x6 blocks (a batched ``dot`` runs one tiny GEMM per batch element), and it fuses with
+    the surrounding element-wise code. Use plain ``@`` for large matrices.
+    """
+    k = a.shape[-1]
+    if b.shape[-2] != k:
+        raise ValueError(f"mm: inner dimensions differ, {tuple(a.shape)} @ {tuple(b.shape)}")
+    out = a[..., :, 0:1] * b[..., 0:1, :]
+    for j in range(1, k):
+        out = out + a[..., :, j : j + 1] * b[..., j : j + 1, :]
+    return out
+
+
+def mv(a: Array, x: Array) -> Array:
+    """Batched matrix-vector product ``(*batch, m, k) @ (*batch, k)``, unrolled like :func:`mm`."""
+    return jnp.sum(a * x[..., None, :], axis=-1)
+
+
+def mT(a: Array) -> Array:
+    """Swap the last two axes (batched transpose)."""
+    return jnp.swapaxes(a, -1, -2)
 
 
 def series_or(

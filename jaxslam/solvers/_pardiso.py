@@ -32,7 +32,7 @@ def _load() -> ctypes.CDLL | None:
     global _LIB
     if _LIB is not None:
         return _LIB
-    candidates: list[str | None] = [os.environ.get("JAXSLAM_MKL_RT"), find_library("mkl_rt")]
+    candidates = [p for p in (os.environ.get("JAXSLAM_MKL_RT"), find_library("mkl_rt")) if p]
     for base in (sys.prefix, site.getuserbase()):
         candidates += sorted(glob.glob(f"{base}/lib/libmkl_rt.so*"), key=len)
     for path in candidates:
