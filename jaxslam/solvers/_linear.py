@@ -48,7 +48,15 @@ def default_linear_solver() -> str:
 class SparseSystem:
     """The lower-triangular CSC pattern of ``H`` and a solver bound to it."""
 
-    def __init__(self, indices: np.ndarray, indptr: np.ndarray, n: int, diag_pos: np.ndarray, method: str):
+    def __init__(
+        self,
+        indices: np.ndarray,
+        indptr: np.ndarray,
+        n: int,
+        diag_pos: np.ndarray,
+        method: str,
+        diag_blocks: list[tuple[np.ndarray, np.ndarray]] | None = None,
+    ):
         if method == "auto":
             method = default_linear_solver()
         if method == "cholmod" and not HAVE_CHOLMOD:
@@ -69,6 +77,9 @@ class SparseSystem:
             self._cols = jnp.asarray(np.repeat(np.arange(n), counts), dtype=jnp.int32)
             self._rows = jnp.asarray(indices, dtype=jnp.int32)
             self._diag = jnp.asarray(diag_pos, dtype=jnp.int32)
+            if diag_blocks is None:  # scalar Jacobi: 1x1 blocks
+                diag_blocks = [(np.arange(n)[:, None], np.asarray(diag_pos)[:, None, None])]
+            self._blocks = tuple((jnp.asarray(d, jnp.int32), jnp.asarray(p, jnp.int32)) for d, p in diag_blocks)
 
     def matrix(self, hdata: np.ndarray) -> sp.csc_matrix:
         return sp.csc_matrix((hdata, self.indices, self.indptr), shape=(self.n, self.n))
@@ -79,7 +90,7 @@ class SparseSystem:
         """Solve ``(H + diag(damping)) x = rhs``; ``None`` if not positive definite."""
         if self.method == "pcg":
             d = jnp.zeros(self.n) if damping is None else jnp.asarray(damping)
-            x, ok = pcg_solve(jnp.asarray(hdata), self._rows, self._cols, self._diag, d, jnp.asarray(rhs))
+            x, ok = pcg_solve(jnp.asarray(hdata), self._rows, self._cols, self._diag, self._blocks, d, jnp.asarray(rhs))
             return np.asarray(x) if bool(ok) else None
         data = np.array(hdata, dtype=np.float64, copy=True)
         if damping is not None:
@@ -133,24 +144,39 @@ def pcg_solve(
     rows: Array,
     cols: Array,
     diag_pos: Array,
+    blocks: tuple[tuple[Array, Array], ...],
     damping: Array,
     rhs: Array,
     tol: float = 1e-10,
     maxiter: int = 2000,
 ) -> tuple[Array, Array]:
-    """Jacobi-preconditioned CG on the symmetric matrix stored as its lower triangle."""
+    """Block-Jacobi-preconditioned CG on the symmetric matrix stored as its lower triangle.
+    ``blocks``: per variable type, the dof indices ``(cap, t)`` and H-data positions
+    ``(cap, t, t)`` of every diagonal block (position ``len(hdata)`` = structural zero)."""
     n = rhs.shape[0]
-    diag = hdata[diag_pos] + damping
+    hpad = jnp.concatenate([hdata, jnp.zeros(1, hdata.dtype)])
+    inverses = []
+    for dofs, pos in blocks:
+        b = hpad[pos] + jax.vmap(jnp.diag)(damping[dofs])
+        # padded (untouched) variables have a zero block: use the identity there
+        bad = jnp.abs(jnp.linalg.det(b)) <= 0
+        b = jnp.where(bad[:, None, None], jnp.eye(b.shape[-1]), b)
+        inverses.append(jnp.linalg.inv(b))
+
+    def precondition(r: Array) -> Array:
+        z = jnp.zeros_like(r)
+        for (dofs, _), inv in zip(blocks, inverses):
+            z = z.at[dofs].set(jnp.sum(inv * r[dofs][:, None, :], axis=-1))
+        return z
 
     def matvec(x: Array) -> Array:
         lower = jax.ops.segment_sum(hdata * x[cols], rows, num_segments=n)
         upper = jax.ops.segment_sum(hdata * x[rows], cols, num_segments=n)
         return lower + upper - hdata[diag_pos] * x + damping * x
 
-    inv_diag = jnp.where(diag > 0, 1.0 / jnp.where(diag > 0, diag, 1.0), 1.0)
     x0 = jnp.zeros_like(rhs)
     r0 = rhs
-    z0 = inv_diag * r0
+    z0 = precondition(r0)
     rz0 = r0 @ z0
     bnorm = jnp.linalg.norm(rhs)
 
@@ -166,7 +192,7 @@ def pcg_solve(
         alpha = rz / jnp.where(bad, 1.0, pap)
         x = x + alpha * p
         r = r - alpha * ap
-        z = inv_diag * r
+        z = precondition(r)
         rz_new = r @ z
         p = z + (rz_new / rz) * p
         return x, r, p, rz_new, k + 1, bad

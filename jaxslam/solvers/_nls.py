@@ -128,7 +128,9 @@ class Solver:
             self.anchors = self._make_anchors(values)
             self.gauge_free = []
         p = self.problem
-        self.system = SparseSystem(p.csc_indices, p.csc_indptr, p.ndof, p.diag_pos, self.config.linear_solver)
+        self.system = SparseSystem(
+            p.csc_indices, p.csc_indptr, p.ndof, p.diag_pos, self.config.linear_solver, p.diag_blocks
+        )
         self._untouched = p.untouched_dofs
         self.initial_values = values
 

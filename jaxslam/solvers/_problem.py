@@ -252,6 +252,16 @@ class Problem:
         self.csc_indptr = np.searchsorted(cols, np.arange(n + 1)).astype(np.int32)
         diag_keys = np.arange(n, dtype=np.int64) * n + np.arange(n)
         self.diag_pos = np.searchsorted(uniq, diag_keys)
+        # Per variable type: the H-data index of every entry of each diagonal block (for the
+        # block-Jacobi preconditioner); entries that are structurally zero point past the end.
+        self.diag_blocks: list[tuple[np.ndarray, np.ndarray]] = []
+        for t in self.var_types:
+            d = self.dof_index[t]  # (cap, td)
+            rr = np.maximum(d[:, :, None], d[:, None, :])
+            cc = np.minimum(d[:, :, None], d[:, None, :])
+            key = cc.astype(np.int64) * n + rr
+            pos = np.minimum(np.searchsorted(uniq, key), len(uniq) - 1)
+            self.diag_blocks.append((d, np.where(uniq[pos] == key, pos, len(uniq))))
         # Which dofs are padding (no factor touches them): they get a unit diagonal.
         touched = np.zeros(n, bool)
         for s, rows in zip(self.structures, self._group_rows):
