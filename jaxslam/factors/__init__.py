@@ -2,7 +2,31 @@
 
 from .. import _config  # noqa: F401
 from ._between import BetweenFactor, PriorFactor
+from ._imu import (
+    BiasRandomWalkFactor,
+    ImuFactor,
+    ImuFactorComponentWise,
+    ImuIntervals,
+    PreintegratedImu,
+    PreintegrationParams,
+    cut_imu_stream,
+    predict_imu_state,
+    preintegrate,
+    preintegrate_stream,
+)
 from ._reprojection import ReprojectionFactor, pinhole_project, project_pinhole
 
 __all__ = ["BetweenFactor", "PriorFactor"]
 __all__ += ["ReprojectionFactor", "pinhole_project", "project_pinhole"]
+__all__ += [
+    "BiasRandomWalkFactor",
+    "ImuFactor",
+    "ImuFactorComponentWise",
+    "ImuIntervals",
+    "PreintegratedImu",
+    "PreintegrationParams",
+    "cut_imu_stream",
+    "predict_imu_state",
+    "preintegrate",
+    "preintegrate_stream",
+]

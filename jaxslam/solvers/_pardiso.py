@@ -70,6 +70,18 @@ def pardiso_available() -> bool:
     return _load() is not None
 
 
+def set_threads(n: int | None) -> None:
+    """Number of MKL threads PARDISO uses (``None``: MKL's default, all cores).
+
+    A multithreaded factorisation degrades badly when another process holds a core (an
+    OpenMP barrier waits for a descheduled thread); on a shared machine 1 thread is steadier.
+    """
+    lib = _load()
+    if lib is None or n is None:
+        return
+    lib.MKL_Set_Num_Threads(ctypes.c_int(int(n)))
+
+
 class PardisoNotPositiveDefinite(RuntimeError):
     pass
 
