@@ -31,8 +31,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jaxslam
@@ -74,8 +72,10 @@ def run_ours(factors, values, gt_graph, method: str, repeat: int, max_iterations
     res = first
     for _ in range(repeat):
         t0 = time.perf_counter()
-        res = solver.solve()
+        r = solver.solve()
         times.append(time.perf_counter() - t0)
+        if times[-1] == min(times):
+            res = r
     steady = min(times)
     final = gt_graph.error(values_to_gtsam(res.values))
     return {
@@ -91,6 +91,7 @@ def run_ours(factors, values, gt_graph, method: str, repeat: int, max_iterations
         "linear_solver": solver.system.method,
         "values": res.values,
         "solver": solver,
+        "result": res,
     }
 
 
@@ -186,18 +187,26 @@ def bench_file(path: str, repeat: int, linear_solver: str, gn_iters: int) -> dic
 
     ours_ms, gtsam_ms = gn_iteration_ms(gn["solver"], values, gt_graph, gt_initial, gn_iters, repeat)
     out["gn_iteration_ms"] = {"ours": ours_ms, "gtsam": gtsam_ms, "ratio": ours_ms / gtsam_ms}
-    target = g_lm["final_cost"]
-    best = min((lm, ch), key=lambda r: r["time_s"] if r["final_cost"] <= target * (1 + 1e-6) else np.inf)
-    reached = best["final_cost"] <= target * (1 + 1e-6)
-    out["reach_gtsam_lm_cost"] = {
-        "target": target,
-        "ours_route": "chordal+lm" if best is ch else "lm",
-        "ours_time_s": best["time_s"] if reached else None,
-        "gtsam_lm_time_s": g_lm["time_s"],
-        "ratio": best["time_s"] / g_lm["time_s"] if reached else None,
+    # Time to reach GTSAM LM's final cost, from each route's recorded cost history (the
+    # chordal route includes its initialisation time).
+    target = g_lm["final_cost"] * (1 + 1e-6)
+    routes = {
+        "lm": (lm["result"].time_to_reach(target), 0.0),
+        "chordal+lm": (ch["result"].time_to_reach(target), t_init),
     }
-    out["lm_final_vs_gtsam_rel"] = (lm["final_cost"] - target) / target
-    out["chordal_final_vs_gtsam_rel"] = (ch["final_cost"] - target) / target
+    reached = {k: t + extra for k, (t, extra) in routes.items() if t is not None}
+    best = min(reached, key=reached.get) if reached else None
+    out["reach_gtsam_lm_cost"] = {
+        "target": g_lm["final_cost"],
+        "ours_route": best,
+        "ours_time_s": reached.get(best) if best else None,
+        "per_route_s": reached,
+        "gtsam_lm_time_s": g_lm["time_s"],
+        "ratio": reached[best] / g_lm["time_s"] if best else None,
+    }
+    ref = g_lm["final_cost"]
+    out["lm_final_vs_gtsam_rel"] = (lm["final_cost"] - ref) / ref
+    out["chordal_final_vs_gtsam_rel"] = (ch["final_cost"] - ref) / ref
     return out
 
 

@@ -329,10 +329,14 @@ class Solver:
                     status, msg = Status.INDEFINITE, "damping grew without bound: the system stays indefinite"
                     break
                 continue
-            hstep = self.system.matvec(hdata, step)
-            predicted = -(grad @ step + 0.5 * step @ hstep)
+            # Model decrease -(g.d + d.H.d/2); with (H + lambda D) d = -g this is
+            # (-g.d + lambda d.D.d) / 2, so no product with H is needed.
+            damp = lam * diag_h
+            predicted = 0.5 * (-(grad @ step) + step @ (damp * step))
             new_params = self.retract(params, step)
-            new_cost = self.cost(new_params)
+            # Linearise the candidate at once: the assembly returns its cost too, and most
+            # steps are accepted, so an accepted step needs no separate cost evaluation.
+            new_h, new_g, new_cost = self.linearize(new_params)
             actual = cost - new_cost
             rho = actual / predicted if predicted > 0 else -1.0
             if np.isfinite(new_cost) and rho > 0:
@@ -340,7 +344,7 @@ class Solver:
                 params = new_params
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
-                hdata, grad, cost = self.linearize(params)
+                hdata, grad, cost = new_h, new_g, new_cost
                 diag_h = self._damping_diag(hdata)
                 history.append(cost)
                 self._report(it, cost)
