@@ -50,9 +50,7 @@ class PriorFactor(Factor):
     measured: Array
 
     @classmethod
-    def create(
-        cls, var: Variable, measured: Any, noise: Gaussian, robust: RobustKernel | None = None
-    ) -> PriorFactor:
+    def create(cls, var: Variable, measured: Any, noise: Gaussian, robust: RobustKernel | None = None) -> PriorFactor:
         vtype = type(var)
         n = len(var)
         return cls(

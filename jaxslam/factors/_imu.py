@@ -425,7 +425,8 @@ def _preintegrate_lanes(
         return x.reshape(blocks, lanes, *x.shape[1:])
 
     outs = lax.map(
-        lambda b: _preintegrate_block(*b, params, one), tuple(split(x) for x in (acc, gyro, dt, use, bias_hat))
+        lambda b: _preintegrate_block(b[0], b[1], b[2], b[3], b[4], params, one),
+        tuple(split(x) for x in (acc, gyro, dt, use, bias_hat)),
     )
     return tuple(o.reshape(blocks * lanes, *o.shape[2:])[:k] for o in outs)  # type: ignore[return-value]
 

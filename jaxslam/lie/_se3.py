@@ -51,12 +51,7 @@ def _q_matrix(omega: Array, rho: Array) -> Array:
     c1 = _coef_c(theta_sq)[..., None, None]
     c2 = _coef_q2(theta_sq)[..., None, None]
     c3 = _coef_q3(theta_sq)[..., None, None]
-    return (
-        0.5 * r
-        + c1 * (wr + rw + wrw)
-        + c2 * (mm(ww, r) + mm(rw, w) - 3.0 * wrw)
-        + c3 * (mm(wrw, w) + mm(w, wrw))
-    )
+    return 0.5 * r + c1 * (wr + rw + wrw) + c2 * (mm(ww, r) + mm(rw, w) - 3.0 * wrw) + c3 * (mm(wrw, w) + mm(w, wrw))
 
 
 def _block(a: Array, b: Array, c: Array, d: Array) -> Array:
@@ -100,7 +95,6 @@ class SE3(LieGroup):
         batch_shape_check("SE3.exp", tangent, 6)
         omega, rho = tangent[..., :3], tangent[..., 3:]
         theta_sq, _ = safe_norm(omega)
-        w = skew(omega)
         # V = Jl(omega) = I + b W + c W^2
         v_rho = (
             rho

@@ -123,6 +123,14 @@ def _check_connected(n: int, ei: np.ndarray, ej: np.ndarray, anchor: int, ids: n
         )
 
 
+def _edge_rows(ids: np.ndarray, edges_i: np.ndarray, edges_j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sorted ids, and each edge's end points as rows of them; checks connectivity."""
+    ids = np.asarray(ids)
+    ei, ej = _index(ids, np.asarray(edges_i)), _index(ids, np.asarray(edges_j))
+    _check_connected(len(ids), ei, ej, 0, ids)
+    return ids, ei, ej
+
+
 def _weights(information: np.ndarray | None, e: int, rot: slice, trans: slice) -> tuple[np.ndarray, np.ndarray]:
     if information is None:
         return np.ones(e), np.ones(e)
@@ -141,10 +149,8 @@ def chordal_initialize_se3(
     """Initial SE(3) params ``(N, 7)`` for vertex ``ids`` (sorted) from between edges
     (``measured`` ``(E, 7)``, ``information`` ``(E, 6, 6)`` in [rot, trans] order). The first
     id is the anchor, placed at ``anchor_pose`` (identity by default)."""
-    ids = np.asarray(ids)
+    ids, ei, ej = _edge_rows(ids, edges_i, edges_j)
     n = len(ids)
-    ei, ej = _index(ids, np.asarray(edges_i)), _index(ids, np.asarray(edges_j))
-    _check_connected(n, ei, ej, 0, ids)
     e = len(ei)
     meas = np.asarray(measured, dtype=np.float64)
     rij = _quat_to_matrix(meas[:, :4])  # (E, 3, 3)
@@ -189,10 +195,8 @@ def chordal_initialize_se2(
     anchor_pose: np.ndarray | None = None,
 ) -> np.ndarray:
     """The 2-D version: params ``(N, 4)`` (cos, sin, x, y); information in [theta, x, y]."""
-    ids = np.asarray(ids)
+    ids, ei, ej = _edge_rows(ids, edges_i, edges_j)
     n = len(ids)
-    ei, ej = _index(ids, np.asarray(edges_i)), _index(ids, np.asarray(edges_j))
-    _check_connected(n, ei, ej, 0, ids)
     e = len(ei)
     meas = np.asarray(measured)
     c, s = meas[:, 0], meas[:, 1]

@@ -8,9 +8,9 @@ below ``step_tol``, or ``max_iterations``, and report a :class:`Status` instead 
 LM is a trust-region method with Nielsen's damping update (Madsen, Nielsen, Tingleff,
 "Methods for non-linear least squares problems", 2004, sec. 3.2): the damping shrinks by
 ``max(lambda_decrease, 1 - (2 rho - 1)^3)`` after a good step (Nielsen uses 1/3; 1/30 by
-default here) and doubles (then quadruples, ...) after a rejected one. The damping is ``lambda * I`` by default (as GTSAM's), or Marquardt's
-``lambda * clip(diag(H), min_diag, max_diag)`` (``damping="marquardt"``), which is invariant
-to the units of each variable.
+default here) and doubles (then quadruples, ...) after a rejected one. The damping is
+``lambda * I`` by default (as GTSAM's), or Marquardt's ``lambda * clip(diag(H), min_diag,
+max_diag)`` (``damping="marquardt"``), which is invariant to the units of each variable.
 """
 
 from __future__ import annotations
@@ -257,6 +257,11 @@ class Solver:
             or float(np.max(np.abs(step), initial=0.0)) < c.step_tol
         )
 
+    def _nonfinite_start(self, params: tuple, cost: float, t0: float, throw: bool) -> SolverResult:
+        values = self.problem.unpad_values(params)
+        msg = "initial cost is not finite (NaN or inf in the initial values or measurements)"
+        return self._finish(values, Status.NONFINITE, msg, cost, cost, 0, 0, t0, [cost], throw)
+
     def _gauss_newton(self, params: tuple, t0: float, throw: bool) -> SolverResult:
         c = self.config
         hdata, grad, cost = self.linearize(params)
@@ -264,18 +269,7 @@ class Solver:
         history = [cost]
         self._times.append(time.perf_counter() - self._t0)
         if not np.isfinite(cost):
-            return self._finish(
-                self.problem.unpad_values(params),
-                Status.NONFINITE,
-                "initial cost is not finite",
-                c0,
-                cost,
-                0,
-                0,
-                t0,
-                history,
-                throw,
-            )
+            return self._nonfinite_start(params, cost, t0, throw)
         status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
         it = 0
         for it in range(1, c.max_iterations + 1):
@@ -307,18 +301,7 @@ class Solver:
         history = [cost]
         self._times.append(time.perf_counter() - self._t0)
         if not np.isfinite(cost):
-            return self._finish(
-                self.problem.unpad_values(params),
-                Status.NONFINITE,
-                "initial cost is not finite",
-                c0,
-                cost,
-                0,
-                0,
-                t0,
-                history,
-                throw,
-            )
+            return self._nonfinite_start(params, cost, t0, throw)
         lam, nu = c.initial_lambda, 2.0
         status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
         solves = 0
