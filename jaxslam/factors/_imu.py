@@ -42,6 +42,7 @@ Kalibr units (continuous-time densities), see :class:`PreintegrationParams`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ClassVar
@@ -410,7 +411,14 @@ _BLOCK_LANES = 256
 
 
 def _preintegrate_lanes(
-    acc: Array, gyro: Array, dt: Array, use: Array, bias_hat: Array, params: PreintegrationParams, one: Array
+    acc: Array,
+    gyro: Array,
+    dt: Array,
+    use: Array,
+    bias_hat: Array,
+    params: PreintegrationParams,
+    one: Array,
+    isotropic: bool = False,
 ) -> tuple[Array, Array, Array, Array]:
     """``acc``/``gyro`` (K, M, 3), ``dt``/``use`` (K, M), ``bias_hat`` (K, 6) -> the lane
     results: preintegrated (K, 9), bias Jacobian (K, 9, 6), covariance (K, 9, 9), dt (K,).
@@ -425,14 +433,21 @@ def _preintegrate_lanes(
         return x.reshape(blocks, lanes, *x.shape[1:])
 
     outs = lax.map(
-        lambda b: _preintegrate_block(b[0], b[1], b[2], b[3], b[4], params, one),
+        lambda b: _preintegrate_block(b[0], b[1], b[2], b[3], b[4], params, one, isotropic),
         tuple(split(x) for x in (acc, gyro, dt, use, bias_hat)),
     )
     return tuple(o.reshape(blocks * lanes, *o.shape[2:])[:k] for o in outs)  # type: ignore[return-value]
 
 
 def _preintegrate_block(
-    acc: Array, gyro: Array, dt: Array, use: Array, bias_hat: Array, params: PreintegrationParams, one: Array
+    acc: Array,
+    gyro: Array,
+    dt: Array,
+    use: Array,
+    bias_hat: Array,
+    params: PreintegrationParams,
+    one: Array,
+    isotropic: bool = False,
 ) -> tuple[Array, Array, Array, Array]:
     """One block of lanes, the arguments and results of :func:`_preintegrate_lanes`.
 
@@ -471,8 +486,11 @@ def _preintegrate_block(
     h_acc = jnp.concatenate([jnp.zeros((3, 3, k)), -_total(rot * _s(wp)), -_total(rot * _s(dt_l))])
     # Gyro noise sum_k Z (Qg/dt) Z^T; accelerometer noise S = R Qa R^T enters [dp, dv] with
     # weights [wp^2, wp dt; wp dt, dt^2] / dt; integration noise Qi dt enters dp.
-    qg = jnp.broadcast_to(params.gyroscope_covariance[None, :, :, None], (m, 3, 3, k))
-    zq = _fence(_mm(z, qg) * _s(inv_dt), one)  # Z Qg / dt, Qg symmetric
+    if isotropic:  # Qg = sg^2 I: Z Qg / dt = (sg^2 / dt) Z, no product needed
+        zq = _fence(z * _s(params.gyroscope_covariance[0, 0] * inv_dt), one)
+    else:
+        qg = jnp.broadcast_to(params.gyroscope_covariance[None, :, :, None], (m, 3, 3, k))
+        zq = _fence(_mm(z, qg) * _s(inv_dt), one)  # Z Qg / dt, Qg symmetric
     # Symmetric: the 6 upper 3x3 blocks of the 9x9 only.
     upper = {
         (b, c): _total(_mm_t(zq[:, 3 * b : 3 * b + 3], z[:, 3 * c : 3 * c + 3])) for b in _R3 for c in _R3 if b <= c
@@ -483,8 +501,11 @@ def _preintegrate_block(
             for b in _R3
         ]
     )  # (9, 9, K)
-    qa = jnp.broadcast_to(params.accelerometer_covariance[None, :, :, None], rot.shape)
-    s_acc = _mm_t(_mm(rot, qa), rot)
+    if isotropic:  # Qa = sa^2 I: R Qa R^T = sa^2 I for every sample
+        s_acc = _s(jnp.broadcast_to(params.accelerometer_covariance[0, 0], dt_l.shape)) * _eye(4)
+    else:
+        qa = jnp.broadcast_to(params.accelerometer_covariance[None, :, :, None], rot.shape)
+        s_acc = _mm_t(_mm(rot, qa), rot)
     s_pp = _total(s_acc * _s(wp * wp * inv_dt)) + params.integration_covariance[:, :, None] * _total(dt_l)[None, None]
     s_pv = _total(s_acc * _s(wp))
     s_vv = _total(s_acc * _s(dt_l))
@@ -660,10 +681,22 @@ def preintegrate(
         use_np = dt_np > 0 if mask is None else np.asarray(mask)
         _check_finite_positive(dt_np, use_np, np.asarray(acc, dtype=np.float64), np.asarray(gyro, dtype=np.float64))
     k = int(np.prod(batch)) if batch else 1
+    iso = _isotropic(params)
     workers = _worker_count(k)
     if workers > 1 and _is_concrete(acc, gyro, dt, mask, bias_hat):
-        return _preintegrate_threaded(acc, gyro, dt, mask, bias_hat, params, batch, workers)
-    return _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()))
+        return _preintegrate_threaded(acc, gyro, dt, mask, bias_hat, params, batch, workers, iso)
+    return _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()), iso)
+
+
+def _isotropic(params: PreintegrationParams) -> bool:
+    """True when both white-noise covariances are multiples of the identity (the usual
+    Kalibr case: one density per sensor) and known now; the kernel then skips the products
+    with them. Traced parameters (under an outer jit or grad) take the general path."""
+    if not _is_concrete(params.accelerometer_covariance, params.gyroscope_covariance):
+        return False
+    qa = np.asarray(params.accelerometer_covariance)
+    qg = np.asarray(params.gyroscope_covariance)
+    return bool(np.array_equal(qa, qa[0, 0] * np.eye(3)) and np.array_equal(qg, qg[0, 0] * np.eye(3)))
 
 
 # Below this many intervals one call is cheaper than splitting across threads.
@@ -676,7 +709,15 @@ def _worker_count(k: int) -> int:
 
 
 def _preintegrate_threaded(
-    acc: Any, gyro: Any, dt: Any, mask: Any, bias_hat: Any, params: PreintegrationParams, batch: tuple, workers: int
+    acc: Any,
+    gyro: Any,
+    dt: Any,
+    mask: Any,
+    bias_hat: Any,
+    params: PreintegrationParams,
+    batch: tuple,
+    workers: int,
+    isotropic: bool,
 ) -> PreintegratedImu:
     """Split the intervals into ``workers`` equal chunks (the last padded with empty intervals,
     so every chunk has one shape and one compilation) and run the jitted kernel on them from
@@ -702,7 +743,7 @@ def _preintegrate_threaded(
 
     def run(i: int) -> PreintegratedImu:
         sl = slice(i * chunk, (i + 1) * chunk)
-        out = _preintegrate_jit(acc_p[sl], gyro_p[sl], dt_p[sl], use_p[sl], bias_p[sl], params, one)
+        out = _preintegrate_jit(acc_p[sl], gyro_p[sl], dt_p[sl], use_p[sl], bias_p[sl], params, one, isotropic)
         return jax.block_until_ready(out)
 
     with ThreadPoolExecutor(workers) as pool:
@@ -711,9 +752,16 @@ def _preintegrate_threaded(
     return jax.tree_util.tree_map(lambda x: x.reshape(*batch, *x.shape[1:]), whole)
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames=("isotropic",))
 def _preintegrate_jit(
-    acc: Any, gyro: Any, dt: Any, mask: Any, bias_hat: Any, params: PreintegrationParams, one: Array
+    acc: Any,
+    gyro: Any,
+    dt: Any,
+    mask: Any,
+    bias_hat: Any,
+    params: PreintegrationParams,
+    one: Array,
+    isotropic: bool = False,
 ) -> PreintegratedImu:
     acc = jnp.asarray(acc, dtype=jnp.float64)
     gyro = jnp.asarray(gyro, dtype=jnp.float64)
@@ -732,6 +780,7 @@ def _preintegrate_jit(
         bias_hat.reshape(k, 6),
         params,
         one,
+        isotropic,
     )
     preint = preint.reshape(*batch, 9)
     return PreintegratedImu(

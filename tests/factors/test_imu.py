@@ -654,3 +654,24 @@ def test_threaded_path_equals_single_call() -> None:
     single = _imu._preintegrate_jit(acc, gyro, dt, None, np.zeros(6), params, jnp.ones(()))
     for a, b in zip(jax.tree_util.tree_leaves(threaded), jax.tree_util.tree_leaves(single)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-14)
+
+
+def test_isotropic_fast_path_equals_general_path() -> None:
+    """Scalar noise densities take a kernel that skips the products with Qa and Qg; it must
+    give the general kernel's result."""
+    from jaxslam.factors import _imu
+
+    rng = np.random.default_rng(11)
+    k, m = 40, 7
+    acc = rng.normal(size=(k, m, 3)) + np.array([0.0, 0.0, 9.81])
+    gyro = 0.5 * rng.normal(size=(k, m, 3))
+    dt = np.full((k, m), 0.01)
+    params = PreintegrationParams.make_shared_u(
+        9.81, accelerometer_noise_density=0.02, gyroscope_noise_density=0.003, integration_sigma=1e-3
+    )
+    assert _imu._isotropic(params)
+    one = jnp.ones(())
+    fast = _imu._preintegrate_jit(acc, gyro, dt, None, np.zeros(6), params, one, True)
+    general = _imu._preintegrate_jit(acc, gyro, dt, None, np.zeros(6), params, one, False)
+    for a, b in zip(jax.tree_util.tree_leaves(fast), jax.tree_util.tree_leaves(general)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-18)
