@@ -43,8 +43,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ClassVar
 
 import jax
@@ -680,12 +678,7 @@ def preintegrate(
         dt_np = np.asarray(dt, dtype=np.float64)
         use_np = dt_np > 0 if mask is None else np.asarray(mask)
         _check_finite_positive(dt_np, use_np, np.asarray(acc, dtype=np.float64), np.asarray(gyro, dtype=np.float64))
-    k = int(np.prod(batch)) if batch else 1
-    iso = _isotropic(params)
-    workers = _worker_count(k)
-    if workers > 1 and _is_concrete(acc, gyro, dt, mask, bias_hat):
-        return _preintegrate_threaded(acc, gyro, dt, mask, bias_hat, params, batch, workers, iso)
-    return _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()), iso)
+    return _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()), _isotropic(params))
 
 
 def _isotropic(params: PreintegrationParams) -> bool:
@@ -697,59 +690,6 @@ def _isotropic(params: PreintegrationParams) -> bool:
     qa = np.asarray(params.accelerometer_covariance)
     qg = np.asarray(params.gyroscope_covariance)
     return bool(np.array_equal(qa, qa[0, 0] * np.eye(3)) and np.array_equal(qg, qg[0, 0] * np.eye(3)))
-
-
-# Below this many intervals one call is cheaper than splitting across threads.
-_THREAD_MIN_LANES = 1024
-
-
-def _worker_count(k: int) -> int:
-    cores = os.cpu_count() or 1
-    return max(1, min(cores, k // _THREAD_MIN_LANES))
-
-
-def _preintegrate_threaded(
-    acc: Any,
-    gyro: Any,
-    dt: Any,
-    mask: Any,
-    bias_hat: Any,
-    params: PreintegrationParams,
-    batch: tuple,
-    workers: int,
-    isotropic: bool,
-) -> PreintegratedImu:
-    """Split the intervals into ``workers`` equal chunks (the last padded with empty intervals,
-    so every chunk has one shape and one compilation) and run the jitted kernel on them from
-    a thread pool: XLA releases the GIL, so the chunks run on separate cores. XLA:CPU runs
-    one such small kernel on one core, and this was measured 1.5x faster on 2 cores."""
-    m = np.shape(acc)[-2]
-    k = int(np.prod(batch))
-    arrays = [
-        np.asarray(acc, np.float64).reshape(k, m, 3),
-        np.asarray(gyro, np.float64).reshape(k, m, 3),
-        np.asarray(dt, np.float64).reshape(k, m),
-    ]
-    use = (arrays[2] > 0) if mask is None else np.asarray(mask).reshape(k, m)
-    bias = np.broadcast_to(np.asarray(bias_hat, np.float64), (*batch, 6)).reshape(k, 6)
-    chunk = -(-k // workers)
-    pad = chunk * workers - k
-
-    def padded(x: np.ndarray) -> np.ndarray:
-        return np.concatenate([x, np.zeros((pad, *x.shape[1:]), x.dtype)]) if pad else x
-
-    acc_p, gyro_p, dt_p, use_p, bias_p = (padded(x) for x in (*arrays, use, bias))
-    one = jnp.ones(())
-
-    def run(i: int) -> PreintegratedImu:
-        sl = slice(i * chunk, (i + 1) * chunk)
-        out = _preintegrate_jit(acc_p[sl], gyro_p[sl], dt_p[sl], use_p[sl], bias_p[sl], params, one, isotropic)
-        return jax.block_until_ready(out)
-
-    with ThreadPoolExecutor(workers) as pool:
-        parts = list(pool.map(run, range(workers)))
-    whole = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:k], *parts)
-    return jax.tree_util.tree_map(lambda x: x.reshape(*batch, *x.shape[1:]), whole)
 
 
 @functools.partial(jax.jit, static_argnames=("isotropic",))

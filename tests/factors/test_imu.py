@@ -638,24 +638,6 @@ def test_params_and_factor_constructors_reject_bad_input():
         BiasRandomWalkFactor.create(BiasVar(ids), BiasVar(ids + 2), 0.0, params)
 
 
-def test_threaded_path_equals_single_call() -> None:
-    """Many intervals are split across threads (equal padded chunks); the result must equal
-    one kernel call on all of them."""
-    from jaxslam.factors import _imu
-
-    rng = np.random.default_rng(7)
-    k, m = 2 * _imu._THREAD_MIN_LANES + 37, 5
-    acc = rng.normal(size=(k, m, 3)) + np.array([0.0, 0.0, 9.81])
-    gyro = 0.3 * rng.normal(size=(k, m, 3))
-    dt = np.full((k, m), 0.005)
-    dt[::3, -1] = 0.0  # unequal lengths
-    params = PreintegrationParams.make_shared_u(9.81)
-    threaded = preintegrate(acc, gyro, dt, params)
-    single = _imu._preintegrate_jit(acc, gyro, dt, None, np.zeros(6), params, jnp.ones(()))
-    for a, b in zip(jax.tree_util.tree_leaves(threaded), jax.tree_util.tree_leaves(single)):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-14)
-
-
 def test_isotropic_fast_path_equals_general_path() -> None:
     """Scalar noise densities take a kernel that skips the products with Qa and Qg; it must
     give the general kernel's result."""
