@@ -109,7 +109,16 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         "linear_solves": result.linear_solves,
         "time_s": {"read": t_read, "init": t_init, "analyse": t_analyse, "solve": result.time_s},
     }
-    gauge = "" if not solver.gauge_free and graph.fixed.size else " (gauge fixed at the first vertex)"
+    n_anchor = len(solver.anchors)
+    gauge = "" if n_anchor == 0 else " (gauge fixed at the first vertex)"
+    if n_anchor > 1:
+        names = ", ".join(solver.problem.describe_block(b) for b in solver.problem.free_gauge_blocks()[:5])
+        print(
+            f"jaxslam optimize: warning: the graph has {n_anchor} disconnected components; each is held at "
+            f"its first vertex ({names}{', ...' if n_anchor > 5 else ''}), so their relative placement is arbitrary",
+            file=sys.stderr,
+        )
+        gauge = f" ({n_anchor} disconnected components, each anchored)"
     print(
         f"{Path(args.input).name}: {summary['vertices']} vertices, {summary['edges']} edges{gauge}\n"
         f"  initial cost {result.initial_cost:.10g}  (init: {args.init})\n"

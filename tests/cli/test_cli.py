@@ -77,3 +77,20 @@ def test_sim_is_deterministic() -> None:
     assert not np.array_equal(a.measured, tunnel_pose_graph(seed=4).measured)
     with pytest.raises(ValueError):
         tunnel_pose_graph(length=0.1)
+
+
+def test_disconnected_graph_warns_and_chordal_refuses(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    edge = (
+        "1 0 0 0 0 0 1 "
+        + " ".join(["1", "0", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0", "0", "0"])
+        + " 1 0 0 1 0 1"
+    )
+    lines = [f"VERTEX_SE3:QUAT {i} {x} 0 0 0 0 0 1" for i, x in enumerate([0, 1, 5, 6])]
+    lines += [f"EDGE_SE3:QUAT 0 1 {edge}", f"EDGE_SE3:QUAT 2 3 {edge}"]
+    g = tmp_path / "two.g2o"
+    g.write_text("\n".join(lines) + "\n")
+    assert main(["optimize", str(g), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "2 disconnected components" in err and "Pose3Var 2" in err
+    assert main(["optimize", str(g), "-q", "--init", "chordal"]) == 1
+    assert "not connected" in capsys.readouterr().err
