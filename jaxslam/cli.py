@@ -93,7 +93,7 @@ def cmd_optimize(args: argparse.Namespace) -> int:
         result = solver.solve(callback=progress)
     out_graph = graph.with_values(result.values)
     if args.output:
-        write_g2o(args.output, out_graph)
+        write_g2o(args.output, out_graph, format="auto")  # .txt / .graph: GTSAM text format
     summary = {
         "input": str(args.input),
         "vertices": len(graph.vertex_ids),
@@ -260,7 +260,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     o = sub.add_parser("optimize", help="optimise a pose graph file (g2o / GTSAM text) and write the result")
     o.add_argument("input", help="pose graph: .g2o, or GTSAM's .graph / EDGE3 .txt")
-    o.add_argument("-o", "--output", help="write the optimised graph (g2o, full float64 precision)")
+    o.add_argument(
+        "-o",
+        "--output",
+        help="write the optimised graph at full float64 precision: GTSAM text format (VERTEX3/EDGE3 or "
+        "VERTEX2/EDGE2) for a .txt or .graph name, else g2o",
+    )
     o.add_argument("--solver", choices=["lm", "gn"], default="lm", help="Levenberg-Marquardt (default) or Gauss-Newton")
     o.add_argument(
         "--init",

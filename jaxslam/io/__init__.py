@@ -3,13 +3,14 @@ KITTI). Every reader raises :class:`~jaxslam.errors.InputFormatError` naming the
 for bad input, and writes floats at full float64 precision."""
 
 from .. import _config  # noqa: F401
-from ._g2o import IGNORED_TAGS, TAGS, quaternion_from_rpy, read_g2o, write_g2o
+from ._g2o import GTSAM_SUFFIXES, IGNORED_TAGS, TAGS, quaternion_from_rpy, read_g2o, rpy_from_quaternion, write_g2o
 from ._parse import QUATERNION_NORM_TOLERANCE
 from ._posegraph import FIX_SIGMA, PoseGraph, chain_odometry
 from ._trajectory import ROTATION_TOLERANCE, Trajectory, read_kitti, read_trajectory, read_tum, write_kitti, write_tum
 
 __all__ = [
     "FIX_SIGMA",
+    "GTSAM_SUFFIXES",
     "IGNORED_TAGS",
     "QUATERNION_NORM_TOLERANCE",
     "ROTATION_TOLERANCE",
@@ -22,6 +23,7 @@ __all__ = [
     "read_kitti",
     "read_trajectory",
     "read_tum",
+    "rpy_from_quaternion",
     "write_g2o",
     "write_kitti",
     "write_tum",

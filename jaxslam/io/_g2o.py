@@ -45,9 +45,16 @@ edges at a ``FIX`` or ``#`` line: unknown tags raise :class:`InputFormatError` n
 and ``PARAMS_SE2OFFSET`` / ``PARAMS_SE3OFFSET`` (sensor offsets of landmark edges) are skipped
 and counted in ``PoseGraph.skipped``; ``FIX`` becomes a prior.
 
-:func:`write_g2o` always writes ``VERTEX_SE2``/``EDGE_SE2`` or ``VERTEX_SE3:QUAT``/
-``EDGE_SE3:QUAT`` with every float at full precision (shortest round-trip decimal), so a
-write followed by a read gives the same numbers (GTSAM's ``writeG2o`` keeps 6 digits).
+:func:`write_g2o` writes every float at full precision (shortest round-trip decimal), so a
+write followed by a read gives the same numbers (GTSAM's ``writeG2o`` keeps 6 digits). With
+``format="g2o"`` (default) it writes ``VERTEX_SE2``/``EDGE_SE2`` or ``VERTEX_SE3:QUAT``/
+``EDGE_SE3:QUAT``; with ``format="gtsam"`` GTSAM's text format, ``VERTEX2``/``EDGE2`` (the
+information in g2o's order ``I11 I12 I13 I22 I23 I33`` over [x, y, theta], which the reader's
+``"auto"`` and GTSAM's ``readG2o`` and ``load2D(noiseFormat=NoiseFormatG2O)`` read; GTSAM's
+``load2D`` default guesses a *covariance* from the zero pattern) or ``VERTEX3``/``EDGE3``
+(roll, pitch, yaw from :func:`rpy_from_quaternion`; the 21 information numbers as
+[rotation, translation], which GTSAM's ``load3D`` and ``readG2o`` both read); ``format="auto"``
+picks GTSAM's for a ``.txt`` or ``.graph`` path and g2o for any other.
 """
 
 from __future__ import annotations
@@ -76,6 +83,10 @@ from ._parse import (
 from ._posegraph import FIX_SIGMA, PoseGraph, chain_odometry
 
 NoiseFormat = Literal["auto", "g2o", "toro"]
+WriteFormat = Literal["g2o", "gtsam", "auto"]
+
+GTSAM_SUFFIXES = frozenset({".txt", ".graph"})
+"""Suffixes that ``write_g2o(..., format="auto")`` writes in GTSAM's text format."""
 
 IGNORED_TAGS = frozenset({"EQUIV", "PARAMS_SE2OFFSET", "PARAMS_SE3OFFSET"})
 """Tags skipped without error (counted in ``PoseGraph.skipped``)."""
@@ -272,6 +283,31 @@ def quaternion_from_rpy(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) ->
     )
 
 
+def rpy_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` roll, pitch, yaw of ``(N, 4)`` wxyz unit quaternions: the inverse of
+    :func:`quaternion_from_rpy` (``R = Rz(yaw) Ry(pitch) Rx(roll)``).
+
+    Pitch is in ``[-pi/2, pi/2]``, roll and yaw in ``[-pi, pi]``. Uses the half-angle identities
+    ``w + y = k+ cos((yaw - roll)/2)``, ``z - x = k+ sin((yaw - roll)/2)``, ``w - y = k- cos((yaw +
+    roll)/2)``, ``z + x = k- sin((yaw + roll)/2)`` with ``k+ = sqrt(1 + sin pitch)`` and ``k- =
+    sqrt(1 - sin pitch)``: every angle comes from an ``atan2``, so it is accurate to rounding
+    everywhere. At gimbal lock (pitch = +-pi/2) one of ``k+-`` is zero and only ``yaw - roll``
+    or ``yaw + roll`` is defined; the ``atan2(0, 0) = 0`` used for the other gives a valid split
+    and never NaN. Either sign of ``q`` gives the same rotation back.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    half_diff = np.arctan2(z - x, w + y)  # (yaw - roll) / 2
+    half_sum = np.arctan2(z + x, w - y)  # (yaw + roll) / 2
+    pitch = 2.0 * np.arctan2(np.hypot(w + y, z - x), np.hypot(w - y, z + x)) - np.pi / 2
+    return np.stack([_wrap(half_sum - half_diff), pitch, _wrap(half_sum + half_diff)], axis=-1)
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles in ``(-2pi, 2pi]`` moved into ``[-pi, pi]`` by adding or subtracting ``2pi``."""
+    return np.where(angle > np.pi, angle - 2 * np.pi, np.where(angle < -np.pi, angle + 2 * np.pi, angle))
+
+
 def _symmetric(upper: np.ndarray, n: int, order: Sequence[int] | None = None) -> np.ndarray:
     """``(N, n, n)`` symmetric matrices from ``(N, n(n+1)/2)`` entries. By default the entries
     are the upper triangle row by row; ``order`` lists, for each such position, which column
@@ -408,20 +444,40 @@ def _check_defined(ids: np.ndarray, used: np.ndarray, lines: np.ndarray, path: s
 # --- writing -----------------------------------------------------------------------------------
 
 
-def write_g2o(path: str | Path, graph: PoseGraph | Values, factors: Sequence[Factor] | None = None) -> None:
-    """Write a pose graph in g2o format at full float64 precision.
+def write_g2o(
+    path: str | Path,
+    graph: PoseGraph | Values,
+    factors: Sequence[Factor] | None = None,
+    *,
+    format: WriteFormat = "g2o",
+) -> None:
+    """Write a pose graph in g2o format, or GTSAM's text format, at full float64 precision.
 
     Either ``write_g2o(path, graph)`` with a :class:`PoseGraph` (``graph.with_values(opt)``
     writes an optimised estimate with the original edges), or ``write_g2o(path, values,
     factors)`` with Values of one pose type and a list of :class:`BetweenFactor` (their noise
     written as information ``R^T R``) and :class:`PriorFactor` (written as ``FIX`` lines: the
     prior's measurement and noise are not kept). Robust kernels are not written.
+
+    Args:
+        path: the file to write.
+        graph: a PoseGraph, or Values (then pass ``factors``).
+        factors: the factors to write with ``Values``.
+        format: ``"g2o"`` (``VERTEX_SE2``/``EDGE_SE2``, ``VERTEX_SE3:QUAT``/``EDGE_SE3:QUAT``),
+            ``"gtsam"`` (``VERTEX2``/``EDGE2``, ``VERTEX3``/``EDGE3`` with roll, pitch, yaw; see
+            the module doc for the information order), or ``"auto"``: ``"gtsam"`` when
+            ``path`` ends in ``.txt`` or ``.graph`` (any case), else ``"g2o"``.
+
+    Raises ValueError for an unknown format or for NaN / infinite poses or information.
     """
+    if format not in ("g2o", "gtsam", "auto"):
+        raise ValueError(f"format must be 'g2o', 'gtsam' or 'auto', got {format!r}")
+    gtsam = format == "gtsam" or (format == "auto" and Path(path).suffix.lower() in GTSAM_SUFFIXES)
     g = _as_pose_graph(graph, factors)
     require_finite("write_g2o vertices", np.asarray(g.values.params(g.var_type)))
     require_finite("write_g2o measured", g.measured)
     require_finite("write_g2o information", g.information)
-    lines = _vertex_lines(g) + _edge_lines(g) + [f"FIX {k}" for k in g.fixed.tolist()]
+    lines = _vertex_lines(g, gtsam) + _edge_lines(g, gtsam) + [f"FIX {k}" for k in g.fixed.tolist()]
     Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
@@ -468,10 +524,13 @@ def _cat(arrays: list[np.ndarray], empty_shape: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(arrays) if arrays else np.zeros(empty_shape)
 
 
-def _file_pose(dim: int, params: np.ndarray) -> np.ndarray:
-    """jaxslam params to g2o's ``x y theta`` or ``x y z qx qy qz qw``."""
+def _file_pose(dim: int, params: np.ndarray, gtsam: bool = False) -> np.ndarray:
+    """jaxslam params to g2o's ``x y theta`` or ``x y z qx qy qz qw``, or (``gtsam``) to
+    ``x y z roll pitch yaw`` in 3-D."""
     if dim == 2:
         return np.stack([params[:, 2], params[:, 3], _angles(params[:, 0], params[:, 1])], axis=-1)
+    if gtsam:
+        return np.concatenate([params[:, 4:7], rpy_from_quaternion(params[:, :4])], axis=-1)
     return params[:, [4, 5, 6, 1, 2, 3, 0]]
 
 
@@ -491,16 +550,26 @@ def _angles(c: np.ndarray, s: np.ndarray, ulps: int = 4) -> np.ndarray:
     return theta
 
 
-def _vertex_lines(g: PoseGraph) -> list[str]:
-    tag = "VERTEX_SE2" if g.dim == 2 else "VERTEX_SE3:QUAT"
+_WRITE_TAGS = {
+    (2, False): ("VERTEX_SE2", "EDGE_SE2"),
+    (3, False): ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT"),
+    (2, True): ("VERTEX2", "EDGE2"),
+    (3, True): ("VERTEX3", "EDGE3"),
+}
+
+
+def _vertex_lines(g: PoseGraph, gtsam: bool) -> list[str]:
+    tag = _WRITE_TAGS[g.dim, gtsam][0]
     params = np.asarray(g.values.params(g.var_type), dtype=np.float64)
-    return format_rows(tag, g.vertex_ids[:, None], _file_pose(g.dim, params))
+    return format_rows(tag, g.vertex_ids[:, None], _file_pose(g.dim, params, gtsam))
 
 
-def _edge_lines(g: PoseGraph) -> list[str]:
-    tag = "EDGE_SE2" if g.dim == 2 else "EDGE_SE3:QUAT"
-    q = _JAX_TO_G2O[g.dim]
-    info = g.information[:, q][:, :, q]
+def _edge_lines(g: PoseGraph, gtsam: bool) -> list[str]:
+    tag = _WRITE_TAGS[g.dim, gtsam][1]
+    info = g.information
+    if not (gtsam and g.dim == 3):  # EDGE3 holds jaxslam's [rotation, translation] order as is
+        q = _JAX_TO_G2O[g.dim]
+        info = info[:, q][:, :, q]
     r, c = np.triu_indices(info.shape[-1])
-    numbers = np.concatenate([_file_pose(g.dim, g.measured), info[:, r, c]], axis=-1)
+    numbers = np.concatenate([_file_pose(g.dim, g.measured, gtsam), info[:, r, c]], axis=-1)
     return format_rows(tag, np.stack([g.edges_i, g.edges_j], axis=-1), numbers)
