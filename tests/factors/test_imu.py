@@ -641,7 +641,7 @@ def test_params_and_factor_constructors_reject_bad_input():
 def test_isotropic_fast_path_equals_general_path() -> None:
     """Scalar noise densities take a kernel that skips the products with Qa and Qg; it must
     give the general kernel's result."""
-    from jaxslam.factors import _imu
+    from jaxslam.factors import _preintegration as _imu
 
     rng = np.random.default_rng(11)
     k, m = 40, 7
