@@ -292,9 +292,30 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def enable_compilation_cache() -> str | None:
+    """Keep JAX's compiled programs on disk between runs (``$JAXSLAM_CACHE_DIR``, default
+    ``~/.cache/jaxslam/jax``; set it to an empty string to disable), so a second run of a
+    command on a graph of the same size classes skips JIT compilation."""
+    import os
+
+    import jax
+
+    path = os.environ.get("JAXSLAM_CACHE_DIR", str(Path.home() / ".cache" / "jaxslam" / "jax"))
+    if not path:
+        return None
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    return path
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    enable_compilation_cache()
     func: Callable[[argparse.Namespace], int] = args.func
     if args.debug:
         return func(args)

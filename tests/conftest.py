@@ -6,6 +6,12 @@ rank-broadcast in library code fails loudly here instead of hiding a shape bug.
 
 from __future__ import annotations
 
+import os
+
+# The CLI keeps compiled programs on disk; tests call it in-process, so keep the test
+# session's JAX configuration untouched (a test checks the cache in a subprocess).
+os.environ["JAXSLAM_CACHE_DIR"] = ""
+
 import importlib
 
 import jax

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -94,3 +95,16 @@ def test_disconnected_graph_warns_and_chordal_refuses(tmp_path: Path, capsys: py
     assert "2 disconnected components" in err and "Pose3Var 2" in err
     assert main(["optimize", str(g), "-q", "--init", "chordal"]) == 1
     assert "not connected" in capsys.readouterr().err
+
+
+def test_compilation_cache_is_written_and_reused(tmp_path: Path) -> None:
+    cache = tmp_path / "cache"
+    env = {**os.environ, "JAXSLAM_CACHE_DIR": str(cache)}
+    cmd = [sys.executable, "-m", "jaxslam.cli", "optimize", str(DATA / "tinyGrid3D.g2o"), "-q"]
+    first = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert first.returncode == 0, first.stderr
+    files = sorted(p.name for p in cache.rglob("*") if p.is_file())
+    assert files, "no compiled programs were cached"
+    second = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert second.returncode == 0
+    assert sorted(p.name for p in cache.rglob("*") if p.is_file()) == files  # reused, nothing new
