@@ -24,7 +24,7 @@ from typing import Literal
 import jax.numpy as jnp
 import numpy as np
 
-from ..core import Factor, Values
+from ..core import Factor, Values, Variable
 from ..errors import GraphError, SolverError
 from ._linear import SparseSystem
 from ._problem import Problem, assemble, retract_all, total_cost
@@ -122,10 +122,19 @@ class Solver:
     re-analysis.
     """
 
-    def __init__(self, factors: Sequence[Factor], values: Values, config: SolverConfig | None = None):
+    def __init__(
+        self,
+        factors: Sequence[Factor],
+        values: Values,
+        config: SolverConfig | None = None,
+        *,
+        fixed: Sequence[Variable] = (),
+    ):
+        """``fixed``: variables held constant at their values in ``values`` (GTSAM users add
+        a tight prior or leave them out of the graph; here they keep no degrees of freedom)."""
         self.config = config or SolverConfig()
         factors = list(factors)
-        self.problem = Problem(factors, values, ordering=self.config.ordering)
+        self.problem = Problem(factors, values, ordering=self.config.ordering, fixed=fixed)
         self.anchors: list[_GaugeAnchor] = []
         self.gauge_free = self.problem.free_gauge_components()
         if self.gauge_free and self.config.fix_gauge:
@@ -350,7 +359,13 @@ class Solver:
 
 
 def optimize(
-    factors: Sequence[Factor], values: Values, config: SolverConfig | None = None, *, throw: bool = False
+    factors: Sequence[Factor],
+    values: Values,
+    config: SolverConfig | None = None,
+    *,
+    throw: bool = False,
+    fixed: Sequence[Variable] = (),
 ) -> SolverResult:
-    """Analyse and solve in one call (GTSAM's ``optimizer.optimize()``)."""
-    return Solver(factors, values, config).solve(throw=throw)
+    """Analyse and solve in one call (GTSAM's ``optimizer.optimize()``); ``fixed`` variables
+    are held constant."""
+    return Solver(factors, values, config, fixed=fixed).solve(throw=throw)

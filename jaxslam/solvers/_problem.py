@@ -115,13 +115,15 @@ class Problem:
     factor touches; they are left unchanged.
     """
 
-    def __init__(self, factors: Sequence[Factor], values: Values, *, ordering: str = "amd"):
+    def __init__(
+        self, factors: Sequence[Factor], values: Values, *, ordering: str = "amd", fixed: Sequence[Variable] = ()
+    ):
         if len(factors) == 0:
             raise GraphError("the graph has no factors")
         self.ordering_method = ordering
         self._analyse_variables(values)
         self._analyse_groups(factors, values)
-        self._analyse_layout(ordering)
+        self._analyse_layout(ordering, fixed, values)
         self._analyse_pattern()
 
     # --- variables ----------------------------------------------------------------------
@@ -185,7 +187,7 @@ class Problem:
             self._group_rows.append(rows)
 
     # --- layout and ordering ------------------------------------------------------------
-    def _analyse_layout(self, ordering: str) -> None:
+    def _analyse_layout(self, ordering: str, fixed: Sequence[Variable], values: Values) -> None:
         # Global block index of (type, row): types in order, rows within (padded) type.
         self.block_base = {}
         nb = 0
@@ -195,6 +197,13 @@ class Problem:
         self.num_blocks = nb
         block_dim = np.concatenate([np.full(self.var_capacity[t], t.tangent_dim) for t in self.var_types])
         self.block_dim = block_dim
+        # Fixed (constant) variables keep their values: they get no degrees of freedom, and
+        # their dofs map to the dump index ``ndof`` everywhere below.
+        self.fixed_blocks = np.zeros(nb, bool)
+        for var in fixed:
+            if type(var) not in self.block_base:
+                raise GraphError(f"fixed {type(var).__name__} variables have no values")
+            self.fixed_blocks[self.block_base[type(var)] + values.rows(var)] = True
         # Block adjacency from the factors.
         pairs_i, pairs_j = [np.arange(nb)], [np.arange(nb)]
         for s, rows in zip(self.structures, self._group_rows):
@@ -208,16 +217,17 @@ class Problem:
         self._block_pairs = (bi, bj)
         perm = block_ordering(bi, bj, nb, ordering)
         # position of each block in the elimination order -> scalar offset
-        offset_in_order = np.concatenate([[0], np.cumsum(block_dim[perm])[:-1]])
+        free_dim = np.where(self.fixed_blocks, 0, block_dim)
+        offset_in_order = np.concatenate([[0], np.cumsum(free_dim[perm])[:-1]])
         self.block_offset = np.empty(nb, dtype=np.int64)
         self.block_offset[perm] = offset_in_order
-        self.ndof = int(block_dim.sum())
-        # scalar index of each tangent component, per variable type: (cap, t)
-        self.dof_index = {
-            t: self.block_offset[self.block_base[t] : self.block_base[t] + self.var_capacity[t]][:, None]
-            + np.arange(t.tangent_dim)[None, :]
-            for t in self.var_types
-        }
+        self.ndof = int(free_dim.sum())
+        # scalar index of each tangent component, per variable type: (cap, t); ndof if fixed
+        self.dof_index = {}
+        for t in self.var_types:
+            blocks = slice(self.block_base[t], self.block_base[t] + self.var_capacity[t])
+            idx = self.block_offset[blocks][:, None] + np.arange(t.tangent_dim)[None, :]
+            self.dof_index[t] = np.where(self.fixed_blocks[blocks][:, None], self.ndof, idx)
         self.dof_index_jax = tuple(jnp.asarray(self.dof_index[t], dtype=jnp.int32) for t in self.var_types)
 
     # --- sparsity pattern and scatter targets -------------------------------------------
@@ -237,6 +247,7 @@ class Problem:
                     rr, cc = np.broadcast_arrays(ra, cb)
                     lo_r, lo_c = np.maximum(rr, cc), np.minimum(rr, cc)
                     key = lo_c.astype(np.int64) * n + lo_r
+                    key = np.where(lo_r >= n, -1, key)  # an entry of a fixed variable: dropped
                     if a == b:  # symmetric diagonal block: keep p >= q entries only
                         ta = dofs[a].shape[1]
                         keep = np.tril(np.ones((ta, ta), bool))[None]
@@ -266,7 +277,8 @@ class Problem:
         touched = np.zeros(n, bool)
         for s, rows in zip(self.structures, self._group_rows):
             for t, r in zip(s.var_types, rows):
-                touched[self.dof_index[t][r].ravel()] = True
+                d = self.dof_index[t][r].ravel()
+                touched[d[d < n]] = True
         self.untouched_dofs = np.nonzero(~touched)[0]
 
         self.group_data: list[GroupData] = []
@@ -339,6 +351,7 @@ class Problem:
                 touched[self.block_base[t] + r] = True
         fixed = np.zeros(ncomp, bool)
         fixed[labels[self.unary_blocks]] = True
+        fixed[labels[self.fixed_blocks]] = True  # a constant variable anchors its component
         first, sizes = [], []
         for c in range(ncomp):
             members = np.nonzero((labels == c) & touched)[0]
@@ -429,4 +442,5 @@ def retract_all(
     *,
     var_types: tuple[type[Variable], ...],
 ) -> tuple[Array, ...]:
-    return tuple(t.retract(p, delta[idx]) for t, p, idx in zip(var_types, params, dof_index))
+    padded = jnp.concatenate([delta, jnp.zeros(1, delta.dtype)])  # index ndof: fixed variables
+    return tuple(t.retract(p, padded[idx]) for t, p, idx in zip(var_types, params, dof_index))

@@ -256,3 +256,27 @@ def test_similar_sizes_reuse_compiled_code() -> None:
     res = optimize(*chain(104))
     assert assemble._cache_size() == before
     assert res.status is Status.CONVERGED and res.final_cost < 1e-12
+
+
+# --- fixed (constant) variables ------------------------------------------------------------
+def test_fixed_variables_stay_put_and_anchor_the_gauge() -> None:
+    graph = read_g2o(DATA / "smallGrid3D.g2o")
+    ids = graph.vertex_ids
+    fixed = [Pose3Var(ids[:1]), Pose3Var(ids[10:12])]
+    res = optimize(graph.factors, graph.values, SolverConfig(method="lm"), fixed=fixed, throw=True)
+    assert res.status is Status.CONVERGED  # no prior in the graph: the fixed poses anchor it
+    for var in fixed:
+        np.testing.assert_array_equal(np.asarray(res.values.get(var).params), np.asarray(graph.values.get(var).params))
+    # the same optimum as holding those poses with very tight priors
+    tight = [PriorFactor.create(v, graph.values.get(v), Gaussian.isotropic(6, 1e-9)) for v in fixed]
+    ref = optimize([*graph.factors, *tight], graph.values, SolverConfig(method="lm"), throw=True)
+    free = Pose3Var(ids[20:40])
+    err = np.asarray(ref.values.get(free).local(res.values.get(free)))
+    assert np.abs(err).max() < 1e-6
+    assert abs(res.final_cost - ref.final_cost) <= 1e-6 * ref.final_cost
+
+
+def test_fixed_unknown_variable_is_an_error() -> None:
+    graph = read_g2o(DATA / "tinyGrid3D.g2o")
+    with pytest.raises(GraphError, match="Pose3Var 999"):
+        optimize(graph.factors, graph.values, fixed=[Pose3Var(np.array([999]))])
