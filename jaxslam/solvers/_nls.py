@@ -266,19 +266,24 @@ class Solver:
             or float(np.max(np.abs(step), initial=0.0)) < c.step_tol
         )
 
-    def _nonfinite_start(self, params: tuple, cost: float, t0: float, throw: bool) -> SolverResult:
+    def _start(
+        self, params: tuple, t0: float, throw: bool
+    ) -> tuple[np.ndarray, np.ndarray, float, SolverResult | None]:
+        """First linearisation; a NONFINITE result instead when the initial cost is NaN/inf."""
+        hdata, grad, cost = self.linearize(params)
+        self._times.append(time.perf_counter() - self._t0)
+        if np.isfinite(cost):
+            return hdata, grad, cost, None
         values = self.problem.unpad_values(params)
         msg = "initial cost is not finite (NaN or inf in the initial values or measurements)"
-        return self._finish(values, Status.NONFINITE, msg, cost, cost, 0, 0, t0, [cost], throw)
+        return hdata, grad, cost, self._finish(values, Status.NONFINITE, msg, cost, cost, 0, 0, t0, [cost], throw)
 
     def _gauss_newton(self, params: tuple, t0: float, throw: bool) -> SolverResult:
         c = self.config
-        hdata, grad, cost = self.linearize(params)
-        c0 = cost
-        history = [cost]
-        self._times.append(time.perf_counter() - self._t0)
-        if not np.isfinite(cost):
-            return self._nonfinite_start(params, cost, t0, throw)
+        hdata, grad, cost, early = self._start(params, t0, throw)
+        if early is not None:
+            return early
+        c0, history = cost, [cost]
         status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
         it = 0
         for it in range(1, c.max_iterations + 1):
@@ -305,12 +310,10 @@ class Solver:
 
     def _levenberg_marquardt(self, params: tuple, t0: float, throw: bool) -> SolverResult:
         c = self.config
-        hdata, grad, cost = self.linearize(params)
-        c0 = cost
-        history = [cost]
-        self._times.append(time.perf_counter() - self._t0)
-        if not np.isfinite(cost):
-            return self._nonfinite_start(params, cost, t0, throw)
+        hdata, grad, cost, early = self._start(params, t0, throw)
+        if early is not None:
+            return early
+        c0, history = cost, [cost]
         lam, nu = c.initial_lambda, 2.0
         status, msg = Status.MAX_ITERATIONS, f"stopped after {c.max_iterations} iterations"
         solves = 0
