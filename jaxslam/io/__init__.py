@@ -28,3 +28,27 @@ __all__ = [
     "write_kitti",
     "write_tum",
 ]
+from ._recording import (
+    EurocRecording,
+    Recording,
+    StreamInfo,
+    open_recording,
+    read_image_file,
+    recording_formats,
+    register_format,
+)
+from ._rosbag import LIVOX_CUSTOM_MSG, LIVOX_CUSTOM_POINT, RosbagRecording, livox_types
+
+__all__ += [
+    "LIVOX_CUSTOM_MSG",
+    "LIVOX_CUSTOM_POINT",
+    "EurocRecording",
+    "Recording",
+    "RosbagRecording",
+    "StreamInfo",
+    "livox_types",
+    "open_recording",
+    "read_image_file",
+    "recording_formats",
+    "register_format",
+]
