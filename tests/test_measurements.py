@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxslam.errors import InputFormatError
-from jaxslam.measurements import Image, ImuSample, LidarScan, PositionFix, PoseStamped
+from jaxslam.measurements import Image, ImuSample, LidarScan, PoseStamped, PositionFix
 
 
 def test_valid_records_pass() -> None:
