@@ -6,6 +6,11 @@ handle and run phase 11 (analysis) once, then phase 22 (numeric) and 33 (solve) 
 The MKL runtime comes from the ``mkl`` wheel (x86-64 only); where it is missing jaxslam uses
 CHOLMOD or SuperLU instead.
 
+Threads: MKL's default (all cores). Set ``MKL_NUM_THREADS`` before the process starts to
+change it: a multithreaded factorisation degrades badly when another process holds a core
+(an OpenMP barrier waits for a descheduled thread). Changing MKL's thread count while
+PARDISO handles exist crashed once here, so jaxslam never does it at run time.
+
 Matrix input: the *upper* triangle in CSR with 0-based indices, which is exactly jaxslam's
 lower-triangle CSC arrays read row-wise (``H`` is symmetric).
 """
@@ -68,18 +73,6 @@ def _load() -> ctypes.CDLL | None:
 
 def pardiso_available() -> bool:
     return _load() is not None
-
-
-def set_threads(n: int | None) -> None:
-    """Number of MKL threads PARDISO uses (``None``: MKL's default, all cores).
-
-    A multithreaded factorisation degrades badly when another process holds a core (an
-    OpenMP barrier waits for a descheduled thread); on a shared machine 1 thread is steadier.
-    """
-    lib = _load()
-    if lib is None or n is None:
-        return
-    lib.MKL_Set_Num_Threads(ctypes.c_int(int(n)))
 
 
 class PardisoNotPositiveDefinite(RuntimeError):
