@@ -148,28 +148,27 @@ def build_packet(
     return head[:24] + struct.pack("<I", crc) + tail
 
 
+def _points_payload(dtype: np.dtype, xyz: np.ndarray, reflectivity: np.ndarray | None, tag: np.ndarray | None) -> bytes:
+    xyz = np.asarray(xyz)
+    rec = np.zeros(len(xyz), dtype)
+    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    rec["reflectivity"] = 0 if reflectivity is None else reflectivity
+    rec["tag"] = 0 if tag is None else tag
+    return rec.tobytes()
+
+
 def high_points_payload(
     xyz_mm: np.ndarray, reflectivity: np.ndarray | None = None, tag: np.ndarray | None = None
 ) -> bytes:
     """Cartesian-high records (14 bytes each) from (N, 3) int millimetres."""
-    xyz_mm = np.asarray(xyz_mm)
-    rec = np.zeros(len(xyz_mm), HIGH_POINT)
-    rec["x"], rec["y"], rec["z"] = xyz_mm[:, 0], xyz_mm[:, 1], xyz_mm[:, 2]
-    rec["reflectivity"] = 0 if reflectivity is None else reflectivity
-    rec["tag"] = 0 if tag is None else tag
-    return rec.tobytes()
+    return _points_payload(HIGH_POINT, xyz_mm, reflectivity, tag)
 
 
 def low_points_payload(
     xyz_cm: np.ndarray, reflectivity: np.ndarray | None = None, tag: np.ndarray | None = None
 ) -> bytes:
     """Cartesian-low records (8 bytes each) from (N, 3) int centimetres."""
-    xyz_cm = np.asarray(xyz_cm)
-    rec = np.zeros(len(xyz_cm), LOW_POINT)
-    rec["x"], rec["y"], rec["z"] = xyz_cm[:, 0], xyz_cm[:, 1], xyz_cm[:, 2]
-    rec["reflectivity"] = 0 if reflectivity is None else reflectivity
-    rec["tag"] = 0 if tag is None else tag
-    return rec.tobytes()
+    return _points_payload(LOW_POINT, xyz_cm, reflectivity, tag)
 
 
 def imu_payload(gyro: np.ndarray, acc_g: np.ndarray) -> bytes:
