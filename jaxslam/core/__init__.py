@@ -10,6 +10,7 @@ from ._factor import (
     linearize,
     whiten_and_weight,
 )
+from ._marginal import MarginalFactor
 from ._noise import Gaussian, information_is_valid
 from ._robust import KERNELS, Cauchy, GemanMcClure, Huber, RobustKernel, Tukey
 from ._values import Values, lookup_rows
@@ -34,6 +35,7 @@ __all__ = [
     "GemanMcClure",
     "Huber",
     "Linearized",
+    "MarginalFactor",
     "Point2Var",
     "Point3Var",
     "Pose2Var",

@@ -75,6 +75,20 @@ class PoseGraph:
         """``(M, T, T)`` upper-triangular ``R`` with ``R^T R = information``."""
         return np.swapaxes(np.linalg.cholesky(self.information), -1, -2)
 
+    def incremental_order(self) -> list[tuple[int, np.ndarray]]:
+        """The graph as an online stream (how iSAM2 examples replay it): vertices in id
+        order, each arriving with the indices of its edges to earlier vertices.
+        Returns ``[(vertex id, edge indices), ...]``; an edge joining a vertex to itself
+        is not part of any update."""
+        ids = self.vertex_ids
+        pos_i = np.searchsorted(ids, self.edges_i)
+        pos_j = np.searchsorted(ids, self.edges_j)
+        later = np.maximum(pos_i, pos_j)
+        later[pos_i == pos_j] = -1
+        order = np.argsort(later, kind="stable")
+        bounds = np.searchsorted(later[order], np.arange(len(ids) + 1))
+        return [(int(ids[k]), order[bounds[k] : bounds[k + 1]]) for k in range(len(ids))]
+
     def with_values(self, values: Values) -> PoseGraph:
         """The same edges with another estimate (e.g. an optimised one), for writing."""
         return dataclasses.replace(self, values=values)

@@ -1,11 +1,15 @@
 """Problem analysis, batch Gauss-Newton / Levenberg-Marquardt, sparse linear solvers."""
 
 from .. import _config  # noqa: F401
+from ._incremental import IncrementalConfig, IncrementalSolver, UpdateResult
 from ._linear import SparseSystem, available_linear_solvers, pcg_solve
 from ._nls import Solver, SolverConfig, SolverResult, Status, optimize
 from ._problem import Problem, bucket
 
 __all__ = [
+    "IncrementalConfig",
+    "IncrementalSolver",
+    "UpdateResult",
     "Problem",
     "Solver",
     "SolverConfig",

@@ -1,0 +1,300 @@
+"""Online pose-graph smoothing: jaxslam's IncrementalSolver vs gtsam.ISAM2, same stream, same run.
+
+Usage::
+
+    python benchmarks/incremental.py sphere2500.g2o parking-garage.g2o city10000.g2o --json out.json
+
+Each FILE is a g2o / GTSAM pose graph (a path, a name under ../shared/data/posegraph, or a
+file in GTSAM's wheel). It is replayed in vertex order: every update brings one new vertex
+and its edges to earlier vertices (``PoseGraph.incremental_order``); the first vertex gets a
+prior (sigma 1e-6) unless the file fixes it. Each solver chains the new vertex's initial
+guess from *its own* current estimate through the most recent edge (as GTSAM's examples do).
+
+Timed per update: ``update`` plus reading the new vertex's estimate (ours:
+``IncrementalSolver.update``; GTSAM: ``ISAM2.update`` + ``calculateEstimate(key)``, default
+``ISAM2Params``). Building the factor and value objects is not timed (for either). Both
+final estimates are scored by GTSAM on the whole graph (``graph.error``); the batch optimum
+is GTSAM's Levenberg-Marquardt on the whole graph started from iSAM2's final estimate.
+We also report jaxslam's cost after ``optimize()`` (full relinearisation), its relative gap
+to the batch optimum, and costs of both running estimates at checkpoints along the stream.
+
+JSON (``--json PATH``): a list with one object per file,
+``{"file", "ours": S, "isam2": S, "batch_optimum_cost", ...}``, S = ``{"total_s", "p50_ms",
+"p95_ms", "max_ms", "final_cost"}``. Run it on a quiet machine: the full steps use a
+multithreaded BLAS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import jax
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+from jaxslam.core import Gaussian, Pose3Var, Values
+from jaxslam.factors import PriorFactor
+from jaxslam.interop.gtsam import to_gtsam, values_to_gtsam
+from jaxslam.io import read_g2o
+from jaxslam.solvers import IncrementalConfig, IncrementalSolver
+
+SHARED = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "posegraph")
+
+
+def resolve(name: str) -> str:
+    if os.path.exists(name):
+        return name
+    if os.path.exists(os.path.join(SHARED, name)):
+        return os.path.join(SHARED, name)
+    import gtsam
+
+    return gtsam.findExampleDataFile(name)
+
+
+def _slice(factor, idx):
+    return jax.tree_util.tree_map(lambda leaf: leaf[idx] if np.ndim(leaf) >= 1 else leaf, factor)
+
+
+def _stats(lat: list[float], final_cost: float) -> dict:
+    a = np.asarray(lat) * 1e3
+    return {
+        "total_s": float(a.sum() / 1e3),
+        "p50_ms": float(np.percentile(a, 50)),
+        "p95_ms": float(np.percentile(a, 95)),
+        "max_ms": float(a.max()),
+        "final_cost": float(final_cost),
+    }
+
+
+class Stream:
+    """The per-update factor objects and guess edges of one pose graph."""
+
+    def __init__(self, path: str):
+        self.graph = g = read_g2o(path)
+        self.vt = g.var_type
+        self.group = g.var_type.group
+        between = jax.tree_util.tree_map(np.asarray, g.factors[0])
+        self.order = g.incremental_order()
+        self.ids = g.vertex_ids
+        allp = np.asarray(g.values.params(self.vt))
+        self.file_values = [allp[np.searchsorted(self.ids, vid)] for vid, _ in self.order]
+        self.updates = []
+        for k, (vid, edges) in enumerate(self.order):
+            if k == 0:
+                first = self.vt(np.asarray([vid]))
+                x0 = np.asarray(g.values.params(self.vt))[0]
+                facs = [PriorFactor.create(first, x0, Gaussian.isotropic(self.vt.tangent_dim, 1e-6))]
+                self.updates.append((vid, facs, None, x0))
+                continue
+            if len(edges) == 0:
+                raise SystemExit(f"vertex {vid} has no edge to an earlier vertex: not a stream")
+            facs = [_slice(between, edges)]
+            # guess through the edge to the most recent other vertex
+            other = np.where(g.edges_i[edges] == vid, g.edges_j[edges], g.edges_i[edges])
+            e = int(edges[int(np.argmax(other))])
+            self.updates.append((vid, facs, e, None))
+        self.gt_graph, _ = to_gtsam(([] if g.fixed.size else [self.updates[0][1][0]]) + list(g.factors), g.values)
+
+
+def compose_guess(stream: Stream, e: int, vid: int, est_of) -> np.ndarray:
+    g = stream.graph
+    grp = stream.group
+    i, j = int(g.edges_i[e]), int(g.edges_j[e])
+    z = grp(np.asarray(g.measured[e]))
+    if j == vid:
+        return np.asarray(grp(est_of(i)).compose(z).params)
+    return np.asarray(grp(est_of(j)).compose(z.inverse()).params)
+
+
+GUESS = "file"
+
+
+def initial_guess(stream: Stream, k: int, vid: int, e, x0, est_of) -> np.ndarray:
+    """``file``: the file's vertex value (GTSAM's ISAM2 examples); ``chain``: the solver's own
+    estimate of the most recent neighbour composed with the edge."""
+    if e is None:
+        return x0
+    if GUESS == "file":
+        return stream.file_values[k]
+    return compose_guess(stream, e, vid, est_of)
+
+
+def run_ours(stream: Stream, cfg: IncrementalConfig, checkpoints: set[int]) -> tuple[dict, IncrementalSolver, dict]:
+    solver = IncrementalSolver(cfg)
+    vt = stream.vt
+    lat = []
+    store = None
+    ck = {}
+    full = 0
+
+    def est_of(i):
+        return store.x[store.row_of[i]]
+
+    for k, (vid, facs, e, x0) in enumerate(stream.updates):
+        x = initial_guess(stream, k, vid, e, x0, est_of)
+        vals = Values({vt: np.asarray([vid])}, {vt: jax.numpy.asarray(x[None])})
+        t = time.perf_counter()
+        res = solver.update(facs, vals)
+        store = solver.stores[vt]
+        _ = store.x[store.row_of[vid]]
+        lat.append(time.perf_counter() - t)
+        full += res.full_solve
+        if k in checkpoints:
+            ck[k] = solver.estimate()
+    return {"latencies": lat, "full_solves": full}, solver, ck
+
+
+def run_isam2(stream: Stream, checkpoints: set[int]) -> tuple[dict, object, dict]:
+    import gtsam
+
+    isam = gtsam.ISAM2(gtsam.ISAM2Params())
+    vt = stream.vt
+    calc = isam.calculateEstimatePose3 if vt is Pose3Var else isam.calculateEstimatePose2
+    from jaxslam.interop.gtsam import _from_object
+
+    lat = []
+    ck = {}
+    for k, (vid, facs, e, x0) in enumerate(stream.updates):
+        # the neighbour's current estimate (not timed), as GTSAM's examples chain it
+        x = initial_guess(stream, k, vid, e, x0, lambda i: _from_object(vt, calc(i)))
+        graph, vals = to_gtsam(facs, Values({vt: np.asarray([vid])}, {vt: jax.numpy.asarray(x[None])}))
+        t = time.perf_counter()
+        isam.update(graph, vals)
+        calc(vid)
+        lat.append(time.perf_counter() - t)
+        if k in checkpoints:
+            ck[k] = isam.calculateEstimate()
+    return {"latencies": lat}, isam, ck
+
+
+def prefix_error(stream: Stream, values_gt, k: int) -> float:
+    """GTSAM error of the first k+1 updates' factors at the given gtsam.Values."""
+    import gtsam
+
+    ids = set(int(stream.updates[m][0]) for m in range(k + 1))
+    graph = gtsam.NonlinearFactorGraph()
+    for f in range(stream.gt_graph.size()):
+        fac = stream.gt_graph.at(f)
+        keys = list(fac.keys())
+        if all(int(key) in ids for key in keys):
+            graph.add(fac)
+    sub = gtsam.Values()
+    for key in ids:
+        sub.insert(key, values_gt.atPose3(key) if stream.vt is Pose3Var else values_gt.atPose2(key))
+    return float(graph.error(sub))
+
+
+def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int) -> dict:
+    import gtsam
+
+    path = resolve(name)
+    stream = Stream(path)
+    n = len(stream.updates)
+    checkpoints = set(int(c) for c in np.linspace(n // n_checkpoints, n - 1, n_checkpoints).astype(int))
+    print(f"{os.path.basename(path)}: {n} updates, {stream.graph.num_edges} edges", flush=True)
+    # warm-up: one untimed pass over the whole stream compiles every capacity bucket (a
+    # persistent JAX compilation cache does the same across processes); reported apart
+    t = time.perf_counter()
+    _, warm, _ = run_ours(stream, cfg, set())
+    warm.optimize()
+    first_pass_s = time.perf_counter() - t
+    del warm
+
+    ours_raw, solver, ours_ck = run_ours(stream, cfg, checkpoints)
+    ours_vals = values_to_gtsam(solver.estimate())
+    ours_cost = float(stream.gt_graph.error(ours_vals))
+    t = time.perf_counter()
+    solver.optimize()
+    opt_s = time.perf_counter() - t
+    ours_opt = float(stream.gt_graph.error(values_to_gtsam(solver.estimate())))
+
+    isam_raw, isam, isam_ck = run_isam2(stream, checkpoints)
+    isam_est = isam.calculateEstimate()
+    isam_cost = float(stream.gt_graph.error(isam_est))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    params.setMaxIterations(100)
+    starts = {"file": values_to_gtsam(stream.graph.values), "isam2": isam_est, "ours": ours_vals}
+    batch_costs = {
+        name: float(stream.gt_graph.error(gtsam.LevenbergMarquardtOptimizer(stream.gt_graph, v, params).optimize()))
+        for name, v in starts.items()
+    }
+    batch_cost = min(batch_costs.values())
+
+    ck_rows = []
+    for k in sorted(checkpoints):
+        ck_rows.append(
+            {
+                "update": k,
+                "ours": prefix_error(stream, values_to_gtsam(ours_ck[k]), k),
+                "isam2": prefix_error(stream, isam_ck[k], k),
+            }
+        )
+    out = {
+        "file": os.path.basename(path),
+        "updates": n,
+        "ours": _stats(ours_raw["latencies"], ours_cost),
+        "isam2": _stats(isam_raw["latencies"], isam_cost),
+        "batch_optimum_cost": batch_cost,
+        "batch_lm_from": batch_costs,
+        "guess": GUESS,
+        "ours_full_solves": ours_raw["full_solves"],
+        "ours_first_pass_s": first_pass_s,
+        "ours_optimize": {"time_s": opt_s, "cost": ours_opt, "relative_gap": (ours_opt - batch_cost) / batch_cost},
+        "checkpoints": ck_rows,
+        "config": {k: v for k, v in vars(cfg).items()},
+    }
+    o, i = out["ours"], out["isam2"]
+    print(
+        f"  ours : total {o['total_s']:.2f} s  p50 {o['p50_ms']:.2f}  p95 {o['p95_ms']:.2f}  max {o['max_ms']:.1f} ms"
+        f"  final cost {o['final_cost']:.6g}  ({out['ours_full_solves']} full solves; "
+        f"first pass incl. compile {first_pass_s:.1f} s)"
+    )
+    print(
+        f"  isam2: total {i['total_s']:.2f} s  p50 {i['p50_ms']:.2f}  p95 {i['p95_ms']:.2f}  max {i['max_ms']:.1f} ms"
+        f"  final cost {i['final_cost']:.6g}"
+    )
+    print(
+        f"  ratio ours/isam2: total {o['total_s'] / i['total_s']:.2f}  p95 {o['p95_ms'] / i['p95_ms']:.2f};  "
+        f"batch optimum {batch_cost:.6g}; ours after optimize() {ours_opt:.10g} "
+        f"(gap {out['ours_optimize']['relative_gap']:.1e}, {opt_s:.2f} s)"
+    )
+    worse = [c["update"] for c in ck_rows if c["ours"] > c["isam2"]]
+    print(f"  checkpoints where ours > isam2: {worse or 'none'} of {len(ck_rows)}", flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("files", nargs="+")
+    ap.add_argument("--json", metavar="PATH")
+    ap.add_argument("--window", type=int, default=IncrementalConfig.window)
+    ap.add_argument("--full-solve-every", type=int, default=IncrementalConfig.full_solve_every)
+    ap.add_argument("--loop-chi2", type=float, default=IncrementalConfig.loop_chi2)
+    ap.add_argument("--relinearize-threshold", type=float, default=IncrementalConfig.relinearize_threshold)
+    ap.add_argument("--checkpoints", type=int, default=10)
+    ap.add_argument("--guess", choices=["file", "chain"], default="file", help="initial value of each new vertex")
+    a = ap.parse_args()
+    global GUESS
+    GUESS = a.guess
+    cfg = IncrementalConfig(
+        window=a.window,
+        full_solve_every=a.full_solve_every,
+        loop_chi2=a.loop_chi2,
+        relinearize_threshold=a.relinearize_threshold,
+    )
+    results = [bench_file(f, cfg, a.checkpoints) for f in a.files]
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(results, fh, indent=2)
+        print(f"wrote {a.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,825 @@
+"""Incremental smoothing: online Gauss-Newton as measurements arrive (iSAM2's job).
+
+State (everything host-side numpy, append-only, capacity-doubling buffers)::
+
+    variables   x (estimate), x_lin (linearisation point), delta (tangent, x = x_lin ⊕ delta)
+    factors     grouped by class as in batch solves; per constraint the cached whitened
+                Jacobian J and residual r at the x_lin of its variables
+    the linear system   H = sum J^T J,  b = sum J^T r,  solved for delta
+
+One :meth:`IncrementalSolver.update`:
+
+1. adds variables and factors (handles returned), removes factors by handle;
+2. *fluid relinearisation*: variables whose ``|delta|_inf`` exceeds the threshold get
+   ``x_lin <- x, delta <- 0``; only their factors (and the new ones) are relinearised, in one
+   jitted call per factor class on a capacity-bucketed batch (no recompile as the graph
+   grows);
+3. a **local step** — the exact solution of the linear system restricted to the affected
+   variables (new ones, and those of new, removed and relinearised factors), everything else
+   held (one block Gauss-Seidel step, a small dense solve) — or a **full step**: the whole
+   linear system is assembled from the cached blocks and solved by a sparse Cholesky with a
+   fresh AMD ordering. A full step is taken when a new factor closes a loop (touches a
+   variable older than ``loop_span`` updates) and disagrees with the current estimate
+   (whitened chi^2 per residual dimension above ``loop_chi2``), and at least every
+   ``full_solve_every`` updates, so a loop closure's correction reaches every variable on
+   the loop (iSAM2 does this through its Bayes tree; here the sparse factorisation of the
+   whole system takes ~10 ms for a few thousand poses, so it is amortised instead).
+
+:meth:`IncrementalSolver.optimize` relinearises everything and iterates Gauss-Newton to
+convergence (the batch optimum). With ``lag`` set, variables older than ``lag`` updates are
+marginalised (Schur complement) into a :class:`~jaxslam.core.MarginalFactor` on the variables
+that remain, so the cost per update stays bounded on a long tunnel (fixed-lag smoothing).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from collections.abc import Sequence
+from typing import Any, Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+
+from ..core import Factor, MarginalFactor, Values, Variable, linearize
+from ..errors import GraphError
+from ..lie import mm, mT
+from ._nls import Solver, SolverConfig, SolverResult
+from ._problem import _check_factor
+
+try:  # pragma: no cover - import guard
+    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+
+    _HAVE_CHOLMOD = True
+except ImportError:  # pragma: no cover
+    _HAVE_CHOLMOD = False
+
+
+@dataclasses.dataclass(frozen=True)
+class IncrementalConfig:
+    """Options of :class:`IncrementalSolver` (defaults chosen on sphere2500; see README)."""
+
+    relinearize_threshold: float = 0.1
+    """Relinearise a variable when its tangent offset from the linearisation point exceeds
+    this (infinity norm; iSAM2's default 0.1)."""
+    window: int = 10
+    """Every update re-solves the variables of the last ``window`` updates (and all the
+    update touched) with the rest held."""
+    loop_chi2: float = 0.5
+    """A factor reaching further back than ``window`` updates whose whitened chi^2 per
+    residual dimension (at the current estimate) exceeds this widens the window over the
+    whole loop (back to its oldest variable, minus ``loop_margin`` updates)."""
+    loop_margin: int = 0
+    full_solve_every: int = 50
+    """Solve the whole linear system at least every this many updates."""
+    linear_solver: Literal["auto", "cholmod", "splu"] = "auto"
+    """Sparse solver of the full step (``auto``: CHOLMOD when installed)."""
+    lag: int | None = None
+    """Fixed-lag smoothing: marginalise variables added more than ``lag`` updates ago."""
+    max_iterations: int = 100
+    """:meth:`IncrementalSolver.optimize`: Levenberg-Marquardt iterations at most."""
+    relative_tol: float = 1e-12
+    """:meth:`IncrementalSolver.optimize`: stop when the cost decreases by less than this fraction."""
+
+
+@dataclasses.dataclass
+class UpdateResult:
+    handles: list[int]
+    """One handle per factor object passed in ``new_factors`` (for ``remove``)."""
+    full_solve: bool
+    relinearized: int
+    """Number of variables relinearised in this update."""
+    marginalized: int
+    time_s: float
+
+
+# --- storage --------------------------------------------------------------------------------
+class _Store:
+    """Values of one variable type: append-only rows."""
+
+    def __init__(self, vtype: type[Variable], index: int):
+        self.t = vtype
+        self.index = index
+        self.td = vtype.tangent_dim
+        self.n = 0
+        cap = 16
+        self.ids = np.zeros(cap, np.int64)
+        self.x = np.zeros((cap, vtype.param_dim))
+        self.x_lin = np.zeros((cap, vtype.param_dim))
+        self.delta = np.zeros((cap, self.td))
+        self.dof = np.zeros(cap, np.int64)  # first global dof of each row (permanent)
+        self.born = np.zeros(cap, np.int64)  # update number that added it
+        self.live = np.zeros(cap, bool)  # False once marginalised
+        self.row_of: dict[int, int] = {}
+
+    def _grow(self, need: int) -> None:
+        cap = len(self.ids)
+        if need <= cap:
+            return
+        new = max(need, 2 * cap)
+        for name in ("ids", "x", "x_lin", "delta", "dof", "born", "live"):
+            old = getattr(self, name)
+            arr = np.zeros((new, *old.shape[1:]), old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+    def add(self, ids: np.ndarray, params: np.ndarray, dof0: int, born: int) -> np.ndarray:
+        for i in ids.tolist():
+            if i in self.row_of:
+                raise GraphError(f"{self.t.__name__} {i} already has a value (update it through factors)")
+        k = len(ids)
+        self._grow(self.n + k)
+        rows = np.arange(self.n, self.n + k)
+        self.ids[rows] = ids
+        self.x[rows] = params
+        self.x_lin[rows] = params
+        self.delta[rows] = 0.0
+        self.dof[rows] = dof0 + self.td * np.arange(k)
+        self.born[rows] = born
+        self.live[rows] = True
+        for i, r in zip(ids.tolist(), rows.tolist()):
+            self.row_of[i] = r
+        self.n += k
+        return rows
+
+    def rows(self, ids: np.ndarray, what: str) -> np.ndarray:
+        out = np.empty(len(ids), np.int64)
+        for k, i in enumerate(np.asarray(ids).reshape(-1).tolist()):
+            r = self.row_of.get(i)
+            if r is None:
+                raise GraphError(f"{what} refers to {self.t.__name__} {i}, which has no value")
+            out[k] = r
+        return out
+
+
+class _Group:
+    """The constraints of one factor class (same slot types and residual dimension)."""
+
+    def __init__(self, f: Factor, slots: tuple[int, ...]):
+        self.ftype = type(f)
+        self.var_types = f.variable_types()
+        self.slots = slots
+        self.rdim = f.residual_dim
+        self.tds = tuple(t.tangent_dim for t in self.var_types)
+        self.col0 = np.concatenate([[0], np.cumsum(self.tds)]).astype(np.int64)
+        self.T = int(self.col0[-1])
+        leaves, self.treedef = jax.tree_util.tree_flatten(f)
+        self.batched = [jnp.ndim(leaf) >= 1 for leaf in leaves]
+        self.shared = [None if b else leaf for leaf, b in zip(leaves, self.batched)]
+        self.n = 0
+        cap = 16
+        self.buffers = [
+            np.zeros((cap, *np.shape(leaf)[1:]), np.asarray(leaf).dtype) if b else None
+            for leaf, b in zip(leaves, self.batched)
+        ]
+        self.rows = np.zeros((cap, len(slots)), np.int64)
+        self.alive = np.zeros(cap, bool)
+        self.newest = np.zeros(cap, np.int64)  # latest update that added one of its variables
+        self.J = np.zeros((cap, self.rdim, self.T))
+        self.r = np.zeros((cap, self.rdim))
+        # lower-triangle entries of the (T x T) Gram matrix emitted per constraint
+        sel_p, sel_q = [], []
+        for a in range(len(self.tds)):
+            for b in range(a, len(self.tds)):
+                for p in range(self.tds[a]):
+                    for q in range(self.tds[b]):
+                        if a == b and q > p:
+                            continue
+                        sel_p.append(self.col0[a] + p)
+                        sel_q.append(self.col0[b] + q)
+        self.sel_p = np.asarray(sel_p, np.int64)
+        self.sel_q = np.asarray(sel_q, np.int64)
+
+    def _grow(self, need: int) -> None:
+        cap = len(self.alive)
+        if need <= cap:
+            return
+        new = max(need, 2 * cap)
+
+        def g(old: np.ndarray) -> np.ndarray:
+            arr = np.zeros((new, *old.shape[1:]), old.dtype)
+            arr[:cap] = old
+            return arr
+
+        self.buffers = [None if b is None else g(b) for b in self.buffers]
+        self.rows, self.alive, self.J, self.r = g(self.rows), g(self.alive), g(self.J), g(self.r)
+        self.newest = g(self.newest)
+
+    def add(self, f: Factor, rows: np.ndarray, newest: np.ndarray) -> np.ndarray:
+        leaves = jax.tree_util.tree_leaves(f)
+        k = f.num_constraints
+        self._grow(self.n + k)
+        idx = np.arange(self.n, self.n + k)
+        for buf, leaf in zip(self.buffers, leaves):
+            if buf is not None:
+                buf[idx] = np.asarray(leaf)
+        self.rows[idx] = rows
+        self.newest[idx] = newest
+        self.alive[idx] = True
+        self.n += k
+        return idx
+
+    def subset(self, idx: np.ndarray) -> Factor:
+        leaves = [s if b is None else b[idx] for s, b in zip(self.shared, self.buffers)]
+        return jax.tree_util.tree_unflatten(self.treedef, leaves)
+
+
+@jax.jit
+def _linearize_batch(
+    factor: Factor, params: tuple[jax.Array, ...], mask: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    lin = linearize(factor, params, mask)
+    return jnp.concatenate(lin.jacobians, axis=2), lin.residual, lin.cost
+
+
+@jax.jit
+def _gram(J: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Array]:
+    return mm(mT(J), J), jnp.sum(J * r[:, :, None], axis=1)
+
+
+@functools.partial(jax.jit, static_argnames=("vtype",))
+def _retract(vtype: type[Variable], x: jax.Array, d: jax.Array) -> jax.Array:
+    return vtype.retract(x, d)
+
+
+def _pad_rows(a: np.ndarray, cap: int) -> np.ndarray:
+    if len(a) == cap:
+        return a
+    out = np.empty((cap, *a.shape[1:]), a.dtype)
+    out[: len(a)] = a
+    out[len(a) :] = a[:1] if len(a) else 0
+    return out
+
+
+_CHUNK_SIZES = (8, 64, 512)
+
+
+def _chunks(m: int):
+    """``(lo, hi, cap)`` pieces covering ``range(m)``, each padded to one of three compiled
+    sizes, so an ever-growing graph compiles each kernel at most three times per factor class."""
+    lo = 0
+    while lo < m:
+        rest = m - lo
+        cap = next((c for c in _CHUNK_SIZES if rest <= c), _CHUNK_SIZES[-1])
+        hi = min(m, lo + cap)
+        yield lo, hi, cap
+        lo = hi
+
+
+class IncrementalSolver:
+    """Online nonlinear least squares with GTSAM's ISAM2 usage pattern::
+
+    solver = IncrementalSolver()
+    solver.update([prior, odometry], Values.create({Pose3Var(np.array([0, 1])): ...}))
+    ...
+    handles = solver.update([loop_closure]).handles
+    solver.estimate()                 # Values of every variable
+    solver.marginal_covariance(Pose3Var(np.array([7])))
+    solver.update(remove=handles)     # remove factors by handle
+    solver.optimize()                 # full relinearisation to the batch optimum
+    """
+
+    def __init__(self, config: IncrementalConfig | None = None):
+        self.config = config or IncrementalConfig()
+        if self.config.linear_solver == "cholmod" and not _HAVE_CHOLMOD:
+            raise ValueError("linear solver 'cholmod' needs scikit-sparse (pip install 'jaxslam[cholmod]')")
+        self._method = "cholmod" if self.config.linear_solver in ("auto", "cholmod") and _HAVE_CHOLMOD else "splu"
+        self.stores: dict[type[Variable], _Store] = {}
+        self.groups: dict[Any, _Group] = {}
+        self._group_list: list[_Group] = []
+        self._adj: dict[tuple[int, int], list[tuple[int, int]]] = {}  # (store, row) -> [(group, constraint)]
+        self._handles: dict[int, tuple[int, np.ndarray]] = {}
+        self._next_handle = 0
+        self._ndof = 0
+        self.updates = 0
+        self._since_full = 0
+        self.full_solves = 0
+        self._store_list: list[_Store] = []
+
+    # --- variables and factors -------------------------------------------------------------
+    def _store(self, vtype: type[Variable]) -> _Store:
+        s = self.stores.get(vtype)
+        if s is None:
+            s = _Store(vtype, len(self._store_list))
+            self.stores[vtype] = s
+            self._store_list.append(s)
+        return s
+
+    def _add_values(self, values: Values) -> list[tuple[_Store, np.ndarray]]:
+        out = []
+        for vtype in values.types():
+            ids = np.asarray(values.ids(vtype), np.int64)
+            params = np.asarray(values.params(vtype), np.float64)
+            if not np.all(np.isfinite(params)):
+                raise GraphError(f"{vtype.__name__} values are not finite (NaN or inf)")
+            s = self._store(vtype)
+            rows = s.add(ids, params, self._ndof, self.updates)
+            self._ndof += s.td * len(ids)
+            out.append((s, rows))
+        return out
+
+    def _add_factor(self, f: Factor, index: int) -> tuple[int, list[tuple[int, int]]]:
+        n = _check_factor(f, index)
+        rows = []
+        slots = []
+        for v in f.variables:
+            s = self.stores.get(type(v))
+            if s is None:
+                raise GraphError(f"{type(f).__name__} (factor {index}) uses {type(v).__name__}, which has no values")
+            r = s.rows(np.asarray(v.ids), f"{type(f).__name__} (factor {index})")
+            if not np.all(s.live[r]):
+                dead = int(np.asarray(v.ids).reshape(-1)[~s.live[r]][0])
+                raise GraphError(
+                    f"{type(f).__name__} (factor {index}) uses {type(v).__name__} {dead}, which was marginalised"
+                )
+            rows.append(r)
+            slots.append(s.index)
+        key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+        g = self.groups.get(key)
+        if g is None:
+            g = _Group(f, tuple(slots))
+            self.groups[key] = g
+            self._group_list.append(g)
+        gi = self._group_list.index(g)
+        born = [self._store_list[si].born[r] for si, r in zip(slots, rows)]
+        newest = np.max(np.stack(born, axis=1), axis=1) if n else np.zeros(0, np.int64)
+        idx = g.add(f, np.stack(rows, axis=1) if n else np.zeros((0, len(rows)), np.int64), newest)
+        for slot, r in zip(slots, rows):
+            for c, vr in zip(idx.tolist(), r.tolist()):
+                self._adj.setdefault((slot, vr), []).append((gi, c))
+        h = self._next_handle
+        self._next_handle += 1
+        self._handles[h] = (gi, idx)
+        return h, [(gi, int(c)) for c in idx]
+
+    # --- linearisation -----------------------------------------------------------------------
+    def _linearize_rows(self, g: _Group, idx: np.ndarray, at: str) -> tuple[np.ndarray, np.ndarray, float]:
+        """Whitened J, r (and total cost) of constraints ``idx`` at x_lin (``at="lin"``) or at
+        the estimate (``at="x"``)."""
+        J = np.empty((len(idx), g.rdim, g.T))
+        r = np.empty((len(idx), g.rdim))
+        cost = 0.0
+        for lo, hi, cap in _chunks(len(idx)):
+            pidx = _pad_rows(idx[lo:hi], cap)
+            params = tuple(
+                getattr(self._store_list[s], "x_lin" if at == "lin" else "x")[g.rows[pidx, k]]
+                for k, s in enumerate(g.slots)
+            )
+            Jc, rc, cc = _linearize_batch(g.subset(pidx), params, np.arange(cap) < hi - lo)
+            J[lo:hi] = np.asarray(Jc)[: hi - lo]
+            r[lo:hi] = np.asarray(rc)[: hi - lo]
+            cost += float(jnp.sum(cc))
+        return J, r, cost
+
+    def _relinearize(self, gi: int, idx: np.ndarray) -> None:
+        """Recompute J, r of constraints ``idx`` of group ``gi`` at their variables' x_lin."""
+        g = self._group_list[gi]
+        idx = np.unique(idx)
+        idx = idx[g.alive[idx]]
+        if idx.size == 0:
+            return
+        g.J[idx], g.r[idx], _ = self._linearize_rows(g, idx, "lin")
+
+    def _set_estimate(self, s: _Store, rows: np.ndarray) -> None:
+        for lo, hi, cap in _chunks(len(rows)):
+            pr = _pad_rows(rows[lo:hi], cap)
+            s.x[rows[lo:hi]] = np.asarray(_retract(s.t, s.x_lin[pr], s.delta[pr]))[: hi - lo]
+
+    # --- update ------------------------------------------------------------------------------
+    def update(
+        self,
+        new_factors: Sequence[Factor] = (),
+        new_values: Values | None = None,
+        *,
+        remove: Sequence[int] = (),
+    ) -> UpdateResult:
+        """Add ``new_values`` (variables not seen before) and ``new_factors``, remove the
+        factors with handles ``remove``, and update the estimate."""
+        t0 = time.perf_counter()
+        cfg = self.config
+        affected: dict[int, set[int]] = {}  # store -> rows
+        dirty: dict[int, list[int]] = {}  # group -> constraints to relinearise
+        self._validate(new_factors, new_values, remove)
+        if new_values is not None and len(new_values):
+            for s, rows in self._add_values(new_values):
+                affected.setdefault(s.index, set()).update(rows.tolist())
+        handles = []
+        new_refs: list[tuple[int, int]] = []
+        for i, f in enumerate(new_factors):
+            h, refs = self._add_factor(f, i)
+            handles.append(h)
+            new_refs.extend(refs)
+        for h in remove:
+            gi, idx = self._handles.pop(h)
+            g = self._group_list[gi]
+            g.alive[idx] = False
+            g.J[idx] = 0.0
+            g.r[idx] = 0.0
+            for k, s in enumerate(g.slots):
+                affected.setdefault(s, set()).update(g.rows[idx, k].tolist())
+        for gi, c in new_refs:
+            dirty.setdefault(gi, []).append(c)
+            g = self._group_list[gi]
+            for k, s in enumerate(g.slots):
+                affected.setdefault(s, set()).add(int(g.rows[c, k]))
+        # fluid relinearisation
+        nrelin = 0
+        for s in self._store_list:
+            if s.n == 0:
+                continue
+            moved = np.nonzero(s.live[: s.n] & (np.max(np.abs(s.delta[: s.n]), axis=1) > cfg.relinearize_threshold))[0]
+            if moved.size == 0:
+                continue
+            nrelin += moved.size
+            s.x_lin[moved] = s.x[moved]
+            s.delta[moved] = 0.0
+            for r in moved.tolist():
+                for gi, c in self._adj.get((s.index, r), ()):
+                    dirty.setdefault(gi, []).append(c)
+        for gi, cs in dirty.items():
+            self._relinearize(gi, np.asarray(cs, np.int64))
+        # windowed step: the recent variables and everything the update touched; a loop
+        # closure that disagrees with the estimate widens the window over the whole loop;
+        # every ``full_solve_every`` updates the whole system is solved.
+        loop_t0 = self._loop_window(new_refs)
+        full = self._since_full + 1 >= cfg.full_solve_every
+        if full:
+            t0 = 0
+        elif loop_t0 is not None:
+            t0 = max(0, loop_t0 - cfg.loop_margin)
+        else:
+            t0 = max(0, self.updates - cfg.window)
+        self._window_solve(t0, affected)
+        if full or t0 == 0:
+            self._since_full = 0
+            self.full_solves += 1
+        else:
+            self._since_full += 1
+        nmarg = self._marginalize() if cfg.lag is not None else 0
+        self.updates += 1
+        return UpdateResult(handles, full, nrelin, nmarg, time.perf_counter() - t0)
+
+    def _validate(self, factors: Sequence[Factor], values: Values | None, remove: Sequence[int]) -> None:
+        """Reject a bad update before anything changes (so a rejected update loses nothing)."""
+        fresh: dict[type[Variable], set[int]] = {}
+        if values is not None:
+            for vtype in values.types():
+                ids = np.asarray(values.ids(vtype), np.int64)
+                if not np.all(np.isfinite(np.asarray(values.params(vtype)))):
+                    raise GraphError(f"{vtype.__name__} values are not finite (NaN or inf)")
+                s = self.stores.get(vtype)
+                for i in ids.tolist():
+                    if s is not None and i in s.row_of:
+                        raise GraphError(f"{vtype.__name__} {i} already has a value (update it through factors)")
+                fresh[vtype] = set(ids.tolist())
+        for h in remove:
+            if h not in self._handles:
+                raise GraphError(f"no factor with handle {h} (already removed?)")
+        for k, f in enumerate(factors):
+            _check_factor(f, k)
+            for v in f.variables:
+                vt = type(v)
+                s = self.stores.get(vt)
+                new = fresh.get(vt, set())
+                for i in np.asarray(v.ids).reshape(-1).tolist():
+                    if i in new:
+                        continue
+                    r = None if s is None else s.row_of.get(i)
+                    if r is None:
+                        raise GraphError(
+                            f"{type(f).__name__} (factor {k}) refers to {vt.__name__} {i}, which has no value"
+                        )
+                    if not s.live[r]:
+                        raise GraphError(
+                            f"{type(f).__name__} (factor {k}) uses {vt.__name__} {i}, which was marginalised"
+                        )
+
+    def _loop_window(self, refs: list[tuple[int, int]]) -> int | None:
+        """Update number of the oldest variable on a loop that a new factor closes with a
+        large residual (whitened chi^2 per dimension above ``loop_chi2``), else None."""
+        cfg = self.config
+        oldest = None
+        for gi, c in refs:
+            g = self._group_list[gi]
+            born = min(int(self._store_list[s].born[g.rows[c, k]]) for k, s in enumerate(g.slots))
+            if self.updates - born < cfg.window:
+                continue
+            e = g.r[c] + g.J[c] @ self._stacked_delta(g, np.asarray([c]))[0]
+            if float(e @ e) > cfg.loop_chi2 * g.rdim:
+                oldest = born if oldest is None else min(oldest, born)
+        return oldest
+
+    def _stacked_delta(self, g: _Group, idx: np.ndarray) -> np.ndarray:
+        return np.concatenate([self._store_list[s].delta[g.rows[idx, k]] for k, s in enumerate(g.slots)], axis=1)
+
+    # --- windowed step ----------------------------------------------------------------------
+    def _window_solve(self, t0: int, extra: dict[int, set[int]]) -> None:
+        """Exact minimiser of the linear model over the variables added at update ``t0`` or
+        later plus ``extra`` (store -> rows), all other variables held (a block Gauss-Seidel
+        step; ``t0 = 0`` solves the whole system)."""
+        wmap: list[np.ndarray] = []  # per store: compact dof start of each row, -1 = held
+        n = 0
+        for s in self._store_list:
+            m = s.live[: s.n] & (s.born[: s.n] >= t0)
+            ex = extra.get(s.index)
+            if ex:
+                rows = np.fromiter(ex, np.int64, len(ex))
+                m[rows[s.live[rows]]] = True
+            idx = np.nonzero(m)[0]
+            w = np.full(s.n, -1, np.int64)
+            w[idx] = n + s.td * np.arange(len(idx))
+            n += s.td * len(idx)
+            wmap.append(w)
+        if n == 0:
+            return
+        extra_fac: dict[int, set[int]] = {}
+        for si, rows in extra.items():
+            for r in rows:
+                for gi, c in self._adj.get((si, r), ()):
+                    extra_fac.setdefault(gi, set()).add(c)
+        rows_l, cols_l, data_l = [], [], []
+        grad = np.zeros(n)
+        for gi, g in enumerate(self._group_list):
+            sel = g.alive[: g.n] & (g.newest[: g.n] >= t0)
+            ef = extra_fac.get(gi)
+            if ef:
+                sel[np.fromiter(ef, np.int64, len(ef))] = True
+                sel &= g.alive[: g.n]
+            idx = np.nonzero(sel)[0]
+            if idx.size == 0:
+                continue
+            J = g.J[idx]
+            e = g.r[idx] + np.einsum("mrt,mt->mr", J, self._stacked_delta(g, idx))
+            col = np.concatenate(
+                [wmap[si][g.rows[idx, k]][:, None] + np.arange(g.tds[k]) for k, si in enumerate(g.slots)], axis=1
+            )
+            for k, si in enumerate(g.slots):
+                held = wmap[si][g.rows[idx, k]] < 0
+                col[held, g.col0[k] : g.col0[k + 1]] = -1
+            G, gv = self._gram(J, e)
+            gp, gq = col[:, g.sel_p], col[:, g.sel_q]
+            keep = (gp >= 0) & (gq >= 0)
+            rows_l.append(np.maximum(gp, gq)[keep])
+            cols_l.append(np.minimum(gp, gq)[keep])
+            data_l.append(G[:, g.sel_p, g.sel_q][keep])
+            kg = col >= 0
+            np.add.at(grad, col[kg], gv[kg])
+        rr = np.concatenate(rows_l + [np.arange(n)])
+        cc = np.concatenate(cols_l + [np.arange(n)])
+        dd = np.concatenate(data_l + [np.zeros(n)])
+        H = sp.csc_matrix((dd, (rr, cc)), shape=(n, n))
+        diag = H.diagonal()
+        if np.any(diag == 0.0):  # variables without factors stay put
+            H = H + sp.diags((diag == 0.0).astype(float), format="csc")
+        step = self._solve(H, -grad)
+        for s, w in zip(self._store_list, wmap):
+            rows = np.nonzero(w >= 0)[0]
+            if rows.size == 0:
+                continue
+            s.delta[rows] += step[w[rows][:, None] + np.arange(s.td)]
+            self._set_estimate(s, rows)
+
+    @staticmethod
+    def _gram(J: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m = len(J)
+        if m <= 64:
+            return np.einsum("mra,mrb->mab", J, J), np.einsum("mra,mr->ma", J, e)
+        G = np.empty((m, J.shape[2], J.shape[2]))
+        gv = np.empty((m, J.shape[2]))
+        for lo, hi, cap in _chunks(m):
+            Gc, gc = _gram(_pad_rows(J[lo:hi], cap), _pad_rows(e[lo:hi], cap))
+            G[lo:hi] = np.asarray(Gc)[: hi - lo]
+            gv[lo:hi] = np.asarray(gc)[: hi - lo]
+        return G, gv
+
+    # --- full step -------------------------------------------------------------------------------
+    def _dof_map(self) -> tuple[np.ndarray, int]:
+        """Compact numbering of the live dofs: map from permanent dof to system index."""
+        live = np.zeros(self._ndof + 1, bool)
+        for s in self._store_list:
+            rows = np.nonzero(s.live[: s.n])[0]
+            if rows.size:
+                live[(s.dof[rows][:, None] + np.arange(s.td)).ravel()] = True
+        n = int(live.sum())
+        m = np.cumsum(live) - 1
+        m[~live] = -1
+        return m, n
+
+    def _assemble(self, at_estimate: bool = False) -> tuple[sp.csc_matrix, np.ndarray, float, np.ndarray, int]:
+        """Lower-triangular H, b (and the cost when ``at_estimate``) of the live system.
+        ``at_estimate``: linearise every factor at the current estimate (not the cache)."""
+        dmap, n = self._dof_map()
+        rows_l, cols_l, data_l = [], [], []
+        b = np.zeros(n)
+        cost = 0.0
+        for g in self._group_list:
+            idx = np.nonzero(g.alive[: g.n])[0]
+            if idx.size == 0:
+                continue
+            if at_estimate:
+                J, r, c = self._linearize_rows(g, idx, "x")
+                cost += c
+            else:
+                J, r = g.J[idx], g.r[idx]
+            G, gv = self._gram(J, r)
+            cols = np.concatenate(
+                [self._store_list[s].dof[g.rows[idx, k]][:, None] + np.arange(g.tds[k]) for k, s in enumerate(g.slots)],
+                axis=1,
+            )
+            cols = dmap[cols]
+            gp, gq = cols[:, g.sel_p], cols[:, g.sel_q]
+            rows_l.append(np.maximum(gp, gq).ravel())
+            cols_l.append(np.minimum(gp, gq).ravel())
+            data_l.append(G[:, g.sel_p, g.sel_q].ravel())
+            np.add.at(b, cols.ravel(), gv.ravel())
+        rr = np.concatenate(rows_l + [np.arange(n)])
+        cc = np.concatenate(cols_l + [np.arange(n)])
+        dd = np.concatenate(data_l + [np.zeros(n)])
+        H = sp.csc_matrix((dd, (rr, cc)), shape=(n, n))
+        diag = H.diagonal()
+        if np.any(diag == 0.0):  # variables without factors stay put
+            H = H + sp.diags((diag == 0.0).astype(float), format="csc")
+        return H, b, cost, dmap, n
+
+    def _solve(self, H: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
+        if H.shape[0] <= 240:
+            d = H.toarray()
+            d = d + np.tril(d, -1).T
+            try:
+                return scipy.linalg.cho_solve(scipy.linalg.cho_factor(d, lower=True, check_finite=False), rhs)
+            except np.linalg.LinAlgError as err:
+                raise GraphError(
+                    "the linear system is not positive definite: some variables are under-constrained "
+                    "(add a prior on one variable of each connected component)"
+                ) from err
+        if self._method == "cholmod":
+            try:
+                return cholesky(H, ordering_method="amd")(rhs)
+            except CholmodNotPositiveDefiniteError as err:
+                raise GraphError(
+                    "the linear system is not positive definite: some variables are under-constrained "
+                    "(add a prior on one variable of each connected component)"
+                ) from err
+        full = (H + sp.tril(H, -1).T).tocsc()
+        lu = sp.linalg.splu(full, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        if np.any(lu.U.diagonal() <= 0):
+            raise GraphError("the linear system is not positive definite: some variables are under-constrained")
+        return lu.solve(rhs)
+
+    # --- batch optimum ---------------------------------------------------------------------------
+    def optimize(self, config: SolverConfig | None = None) -> SolverResult:
+        """Relinearise everything and solve the whole graph to convergence with the batch
+        solver (Levenberg-Marquardt by default): afterwards the estimate is the batch optimum
+        from the current estimate, the linearisation is fresh and the offsets are zero."""
+        factors = []
+        for g in self._group_list:
+            idx = np.nonzero(g.alive[: g.n])[0]
+            if idx.size:
+                factors.append(g.subset(idx))
+        ids, params = {}, {}
+        for s in self._store_list:
+            rows = np.nonzero(s.live[: s.n])[0]
+            if rows.size:
+                ids[s.t] = s.ids[rows]
+                params[s.t] = jnp.asarray(s.x[rows])
+        order = {t: np.argsort(i, kind="stable") for t, i in ids.items()}
+        values = Values({t: ids[t][o] for t, o in order.items()}, {t: params[t][o] for t, o in order.items()})
+        cfg = config or SolverConfig(
+            method="lm", max_iterations=self.config.max_iterations, relative_tol=self.config.relative_tol
+        )
+        result = Solver(factors, values, cfg).solve()
+        for s in self._store_list:
+            if s.t not in ids:
+                continue
+            rows = np.asarray([s.row_of[int(i)] for i in result.values.ids(s.t)], np.int64)
+            s.x[rows] = np.asarray(result.values.params(s.t))
+            s.x_lin[rows] = s.x[rows]
+            s.delta[rows] = 0.0
+        for gi, g in enumerate(self._group_list):
+            self._relinearize(gi, np.arange(g.n))
+        self._since_full = 0
+        return result
+
+    # --- queries ---------------------------------------------------------------------------------
+    def cost(self) -> float:
+        """Total cost of the current estimate (GTSAM's ``graph.error``)."""
+        total = 0.0
+        for g in self._group_list:
+            idx = np.nonzero(g.alive[: g.n])[0]
+            if idx.size == 0:
+                continue
+            total += self._linearize_rows(g, idx, "x")[2]
+        return total
+
+    def estimate(self) -> Values:
+        """Current estimate of every variable (marginalised ones at their last estimate)."""
+        ids = {}
+        params = {}
+        for s in self._store_list:
+            order = np.argsort(s.ids[: s.n], kind="stable")
+            ids[s.t] = s.ids[: s.n][order]
+            params[s.t] = jnp.asarray(s.x[: s.n][order])
+        return Values(ids, params)
+
+    def marginal_covariance(self, var: Variable) -> np.ndarray:
+        """Marginal covariances ``(K, t, t)`` of the ids of ``var`` (in its tangent order),
+        from the Gauss-Newton information of the whole graph linearised at the current
+        estimate (``gtsam.Marginals``)."""
+        s = self.stores.get(type(var))
+        if s is None:
+            raise GraphError(f"no {type(var).__name__} variables")
+        rows = s.rows(np.asarray(var.ids).reshape(-1), "marginal_covariance")
+        if not np.all(s.live[rows]):
+            raise GraphError(f"{type(var).__name__}: marginalised variables have no covariance here")
+        H, _, _, dmap, n = self._assemble(at_estimate=True)
+        cols = dmap[s.dof[rows][:, None] + np.arange(s.td)]  # (K, t)
+        E = np.zeros((n, cols.size))
+        E[cols.ravel(), np.arange(cols.size)] = 1.0
+        X = self._solve(H, E)
+        out = np.empty((len(rows), s.td, s.td))
+        for k in range(len(rows)):
+            out[k] = X[cols[k]][:, k * s.td : (k + 1) * s.td]
+        return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+    # --- fixed-lag marginalisation ---------------------------------------------------------------
+    def _marginalize(self) -> int:
+        lag = self.config.lag
+        assert lag is not None
+        victims: dict[int, np.ndarray] = {}
+        for s in self._store_list:
+            rows = np.nonzero(s.live[: s.n] & (s.born[: s.n] <= self.updates - lag))[0]
+            if rows.size:
+                victims[s.index] = rows
+        if not victims:
+            return 0
+        is_victim = {(si, int(r)) for si, rows in victims.items() for r in rows}
+        # factors touching a victim, and the variables they connect to (separator)
+        fac: dict[int, set[int]] = {}
+        for key in is_victim:
+            for gi, c in self._adj.get(key, ()):
+                if self._group_list[gi].alive[c]:
+                    fac.setdefault(gi, set()).add(c)
+        order: dict[tuple[int, int], int] = {}
+        dim = 0
+        sep: list[tuple[int, int]] = []
+        for gi, cs in fac.items():
+            g = self._group_list[gi]
+            for c in cs:
+                for k, si in enumerate(g.slots):
+                    key = (si, int(g.rows[c, k]))
+                    if key not in order:
+                        order[key] = -1
+                        if key not in is_victim:
+                            sep.append(key)
+        keys = [k for k in order if k in is_victim] + sep
+        for key in keys:
+            order[key] = dim
+            dim += self._store_list[key[0]].td
+        nm = sum(self._store_list[k[0]].td for k in keys if k in is_victim)
+        H = np.zeros((dim, dim))
+        bvec = np.zeros(dim)
+        for gi, cs in fac.items():
+            g = self._group_list[gi]
+            idx = np.asarray(sorted(cs), np.int64)
+            # linear model around the *current* estimate: e = r + J delta
+            e = g.r[idx] + np.einsum("mrt,mt->mr", g.J[idx], self._stacked_delta(g, idx))
+            col = np.concatenate(
+                [
+                    np.asarray([order[(si, int(r))] for r in g.rows[idx, k]])[:, None] + np.arange(g.tds[k])
+                    for k, si in enumerate(g.slots)
+                ],
+                axis=1,
+            )
+            G = np.einsum("mra,mrb->mab", g.J[idx], g.J[idx])
+            np.add.at(H, (col[:, :, None], col[:, None, :]), G)
+            np.add.at(bvec, col, np.einsum("mra,mr->ma", g.J[idx], e))
+            g.alive[idx] = False
+            g.J[idx] = 0.0
+            g.r[idx] = 0.0
+        for h, (gi, idx) in list(self._handles.items()):
+            if not np.any(self._group_list[gi].alive[idx]):
+                del self._handles[h]
+        for si, rows in victims.items():
+            self._store_list[si].live[rows] = False
+        if sep:
+            Hmm, Hms, Hss = H[:nm, :nm], H[:nm, nm:], H[nm:, nm:]
+            bm, bs = bvec[:nm], bvec[nm:]
+            # Schur complement (pseudo-inverse: a marginalised gauge direction carries nothing)
+            Hmm_inv = np.linalg.pinv(Hmm, hermitian=True)
+            Hp = Hss - Hms.T @ Hmm_inv @ Hms
+            bp = bs - Hms.T @ Hmm_inv @ bm
+            # e above is the linear model at the current delta, so (Hp, bp) is the marginal
+            # cost around the current estimate x_S: 1/2 d^T Hp d + bp^T d, d = Local(x_S, .)
+            # (to first order; Local's Jacobian is I at d = 0).
+            variables = tuple(self._store_list[si].t(np.asarray([self._store_list[si].ids[r]])) for si, r in sep)
+            x0 = tuple(self._store_list[si].x[r] for si, r in sep)
+            mf = MarginalFactor.from_information(variables, x0, Hp, bp)
+            self._add_factor(mf, 0)
+            key = (type(mf), mf.variable_types(), mf.residual_dim, jax.tree_util.tree_structure(mf))
+            g = self.groups[key]
+            self._relinearize(self._group_list.index(g), np.asarray([g.n - 1]))
+        return len(is_victim)

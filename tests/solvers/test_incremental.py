@@ -1,0 +1,308 @@
+"""Incremental solver: batch optimum after optimize(), late loop closures, removal, priors,
+fixed-lag marginalisation (exact on a linear problem), marginal covariances vs GTSAM."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam.core import Gaussian, MarginalFactor, Point3Var, Pose3Var, Values
+from jaxslam.errors import GraphError
+from jaxslam.factors import BetweenFactor, PriorFactor
+from jaxslam.io import read_g2o
+from jaxslam.lie import SE3
+from jaxslam.solvers import IncrementalConfig, IncrementalSolver, SolverConfig, optimize
+
+gtsam = pytest.importorskip("gtsam")
+from jaxslam.interop.gtsam import to_gtsam, values_to_gtsam  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "posegraph"
+
+
+def _slice(f, idx):
+    import jax
+
+    return jax.tree_util.tree_map(lambda leaf: leaf[idx] if np.ndim(leaf) >= 1 else leaf, f)
+
+
+def _replay(graph, config: IncrementalConfig | None = None, upto: int | None = None):
+    """Feed a pose graph vertex by vertex (file values as initial guesses); returns the
+    solver and the factor list it received."""
+    vt = graph.var_type
+    solver = IncrementalSolver(config)
+    between = graph.factors[0]
+    params = np.asarray(graph.values.params(vt))
+    ids = graph.vertex_ids
+    fed = []
+    for k, (vid, edges) in enumerate(graph.incremental_order()[:upto]):
+        vals = Values({vt: np.asarray([vid])}, {vt: jnp.asarray(params[np.searchsorted(ids, vid)][None])})
+        if k == 0:
+            facs = [PriorFactor.create(vt(np.asarray([vid])), params[0], Gaussian.isotropic(vt.tangent_dim, 1e-6))]
+        else:
+            facs = [_slice(between, edges)]
+        solver.update(facs, vals)
+        fed.extend(facs)
+    return solver, fed
+
+
+def _gtsam_error(factors, values) -> float:
+    graph, _ = to_gtsam(factors, values)
+    return float(graph.error(values_to_gtsam(values)))
+
+
+@pytest.mark.parametrize("name", ["tinyGrid3D.g2o", "smallGrid3D.g2o"])
+def test_optimize_reaches_batch_optimum(name: str) -> None:
+    graph = read_g2o(DATA / name)
+    solver, fed = _replay(graph)
+    running = _gtsam_error(fed, solver.estimate())
+    solver.optimize()
+    inc = _gtsam_error(fed, solver.estimate())
+    batch = optimize(fed, graph.values, SolverConfig(max_iterations=200))
+    ref = _gtsam_error(fed, batch.values)
+    assert abs(inc - ref) <= 1e-6 * ref, (inc, ref)
+    assert running >= inc - 1e-9 * ref  # the running estimate is a valid estimate, not better than the optimum
+
+
+def _chain_problem(n: int, seed: int = 0):
+    """A noisy SE(3) chain with a prior on pose 0 and loop closures from the last poses back
+    to the first ones (added late)."""
+    rng = np.random.default_rng(seed)
+    truth = [SE3.identity()]
+    step = SE3.exp(jnp.asarray([0.0, 0.0, 0.3, 1.0, 0.0, 0.0]))
+    for _ in range(n - 1):
+        truth.append(truth[-1].compose(step))
+    P = np.stack([np.asarray(t.params) for t in truth])
+    noisy = lambda s: SE3.exp(jnp.asarray(rng.normal(scale=s, size=6)))  # noqa: E731
+    odo = np.stack(
+        [np.asarray(SE3(P[i]).inverse().compose(SE3(P[i + 1])).compose(noisy(0.02)).params) for i in range(n - 1)]
+    )
+    return P, odo
+
+
+def _chain_solver(P, odo, n, config=None):
+    solver = IncrementalSolver(config)
+    est = P[0]
+    solver.update(
+        [PriorFactor.create(Pose3Var(np.array([0])), P[0], Gaussian.isotropic(6, 1e-3))],
+        Values.create({Pose3Var(np.array([0])): P[0][None]}),
+    )
+    for i in range(1, n):
+        est = np.asarray(SE3(est).compose(SE3(odo[i - 1])).params)
+        solver.update(
+            [
+                BetweenFactor.create(
+                    Pose3Var(np.array([i - 1])), Pose3Var(np.array([i])), odo[i - 1][None], Gaussian.isotropic(6, 0.05)
+                )
+            ],
+            Values.create({Pose3Var(np.array([i])): est[None]}),
+        )
+    return solver
+
+
+def test_late_loop_closure_propagates_to_old_variables() -> None:
+    n = 40
+    P, odo = _chain_problem(n)
+    solver = _chain_solver(P, odo, n)
+    before = np.asarray(solver.estimate().params(Pose3Var))
+    # loop closure last -> 0 with the true relative pose: the whole chain must move
+    z = np.asarray(SE3(P[-1]).inverse().compose(SE3(P[0])).params)
+    loop = BetweenFactor.create(
+        Pose3Var(np.array([n - 1])), Pose3Var(np.array([0])), z[None], Gaussian.isotropic(6, 1e-3)
+    )
+    res = solver.update([loop])
+    after = np.asarray(solver.estimate().params(Pose3Var))
+    moved = np.linalg.norm(after[:, 4:] - before[:, 4:], axis=1)
+    assert res.relinearized >= 0 and len(res.handles) == 1
+    assert moved[n // 2] > 1e-3, "the middle of the loop did not move"
+    err_before = np.linalg.norm(before[-1, 4:] - P[-1, 4:])
+    err_after = np.linalg.norm(after[-1, 4:] - P[-1, 4:])
+    assert err_after < err_before
+
+
+def test_remove_factor_restores_previous_optimum() -> None:
+    n = 12
+    P, odo = _chain_problem(n, seed=1)
+    solver = _chain_solver(P, odo, n)
+    solver.optimize()
+    ref = np.asarray(solver.estimate().params(Pose3Var))
+    bad = np.asarray(
+        SE3(P[-1]).inverse().compose(SE3(P[0])).compose(SE3.exp(jnp.asarray([0.3, 0, 0, 2.0, 0, 0]))).params
+    )
+    h = solver.update(
+        [
+            BetweenFactor.create(
+                Pose3Var(np.array([n - 1])), Pose3Var(np.array([0])), bad[None], Gaussian.isotropic(6, 0.1)
+            )
+        ]
+    ).handles
+    moved = np.asarray(solver.estimate().params(Pose3Var))
+    assert np.abs(moved - ref).max() > 1e-3
+    solver.update(remove=h)
+    solver.optimize()
+    back = np.asarray(solver.estimate().params(Pose3Var))
+    np.testing.assert_allclose(back, ref, atol=1e-7)
+    with pytest.raises(GraphError, match="handle"):
+        solver.update(remove=h)
+
+
+def test_variable_with_only_a_prior_and_update_without_new_variables() -> None:
+    solver = IncrementalSolver()
+    x = np.array([1.0, 2.0, 3.0])
+    solver.update(
+        [PriorFactor.create(Point3Var(np.array([5])), x, Gaussian.isotropic(3, 0.1))],
+        Values.create({Point3Var(np.array([5])): np.zeros((1, 3))}),
+    )
+    np.testing.assert_allclose(np.asarray(solver.estimate().params(Point3Var))[0], x, atol=1e-12)
+    # a second point, then a factor between existing points only
+    solver.update([], Values.create({Point3Var(np.array([6])): np.zeros((1, 3))}))  # value only: stays put
+    np.testing.assert_allclose(np.asarray(solver.estimate().params(Point3Var))[1], 0.0)
+    solver.update(
+        [
+            BetweenFactor.create(
+                Point3Var(np.array([5])), Point3Var(np.array([6])), np.array([[1.0, 0, 0]]), Gaussian.isotropic(3, 0.01)
+            )
+        ]
+    )
+    est = np.asarray(solver.estimate().params(Point3Var))
+    np.testing.assert_allclose(est[1] - est[0], [1.0, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(est[0], x, atol=1e-3)
+
+
+def test_bad_input_raises_graph_errors() -> None:
+    solver = IncrementalSolver()
+    v = Values.create({Point3Var(np.array([0])): np.zeros((1, 3))})
+    solver.update([PriorFactor.create(Point3Var(np.array([0])), np.zeros(3), Gaussian.isotropic(3, 1.0))], v)
+    with pytest.raises(GraphError, match="already has a value"):
+        solver.update([], v)
+    with pytest.raises(GraphError, match="Point3Var 7"):
+        solver.update(
+            [
+                BetweenFactor.create(
+                    Point3Var(np.array([0])), Point3Var(np.array([7])), np.zeros((1, 3)), Gaussian.isotropic(3, 1.0)
+                )
+            ]
+        )
+    with pytest.raises(GraphError, match="not finite"):
+        solver.update([], Values.create({Point3Var(np.array([3])): np.full((1, 3), np.nan)}))
+    with pytest.raises(GraphError, match="Pose3Var"):
+        solver.update([PriorFactor.create(Pose3Var(np.array([0])), SE3.identity().params, Gaussian.isotropic(6, 1.0))])
+    with pytest.raises(GraphError, match="no Pose3Var"):
+        solver.marginal_covariance(Pose3Var(np.array([0])))
+    # a rejected update changes nothing: the new value of a bad update is not kept
+    bad = BetweenFactor.create(
+        Point3Var(np.array([0])), Point3Var(np.array([9])), np.zeros((1, 3)), Gaussian.isotropic(3, 1.0)
+    )
+    with pytest.raises(GraphError, match="Point3Var 9"):
+        solver.update([bad], Values.create({Point3Var(np.array([8])): np.zeros((1, 3))}))
+    assert list(solver.estimate().ids(Point3Var)) == [0]
+
+
+def _linear_stream(n: int, seed: int = 3):
+    """Points on a random walk: prior on 0, odometry, and short loop closures (span 3)."""
+    rng = np.random.default_rng(seed)
+    truth = np.cumsum(rng.normal(size=(n, 3)), axis=0)
+    updates = []
+    for i in range(n):
+        var = Point3Var(np.array([i]))
+        if i == 0:
+            facs = [PriorFactor.create(var, truth[0] + rng.normal(scale=0.1, size=3), Gaussian.isotropic(3, 0.1))]
+        else:
+            facs = [
+                BetweenFactor.create(
+                    Point3Var(np.array([i - 1])),
+                    var,
+                    (truth[i] - truth[i - 1] + rng.normal(scale=0.05, size=3))[None],
+                    Gaussian.isotropic(3, 0.05),
+                )
+            ]
+            if i >= 3:
+                facs.append(
+                    BetweenFactor.create(
+                        Point3Var(np.array([i - 3])),
+                        var,
+                        (truth[i] - truth[i - 3] + rng.normal(scale=0.1, size=3))[None],
+                        Gaussian.diagonal(np.array([0.1, 0.2, 0.3])),
+                    )
+                )
+        updates.append((facs, Values.create({var: rng.normal(size=(1, 3))})))
+    return updates
+
+
+def test_fixed_lag_window_equals_batch_on_linear_problem() -> None:
+    """Marginalisation is exact for a linear Gaussian problem: the fixed-lag smoother's window
+    estimate equals the batch solution of the whole graph, and its marginal prior equals the
+    Schur complement of the whole graph's information onto the window."""
+    n, lag = 30, 6
+    ups = _linear_stream(n)
+    solver = IncrementalSolver(IncrementalConfig(lag=lag))
+    every = []
+    marg = 0
+    for facs, vals in ups:
+        marg += solver.update(facs, vals).marginalized
+        every.extend(facs)
+    assert marg == n - lag
+    solver.optimize()
+    window = np.arange(n - lag, n)
+    est = solver.estimate()
+    got = np.asarray(est.params(Point3Var))[window]
+    all_vals = Values.create({Point3Var(np.arange(n)): np.zeros((n, 3))})
+    batch = optimize(every, all_vals, SolverConfig(method="gn"))
+    want = np.asarray(batch.values.params(Point3Var))[window]
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    # information of the window: Schur complement of the full dense H vs the smoother's
+    H = np.zeros((3 * n, 3 * n))
+    for f in every:
+        for k in range(f.num_constraints):
+            R = np.asarray(f.noise.sqrt_info[k])
+            ids = [int(np.asarray(v.ids)[k]) for v in f.variables]
+            J = np.zeros((3, 3 * n))
+            if len(ids) == 1:
+                J[:, 3 * ids[0] : 3 * ids[0] + 3] = R
+            else:
+                J[:, 3 * ids[0] : 3 * ids[0] + 3] = -R
+                J[:, 3 * ids[1] : 3 * ids[1] + 3] = R
+            H += J.T @ J
+    w = np.concatenate([np.arange(3 * i, 3 * i + 3) for i in window])
+    o = np.setdiff1d(np.arange(3 * n), w)
+    schur = H[np.ix_(w, w)] - H[np.ix_(w, o)] @ np.linalg.solve(H[np.ix_(o, o)], H[np.ix_(o, w)])
+    Hs = np.zeros_like(schur)
+    pos = {int(i): k for k, i in enumerate(window)}
+    for g in solver._group_list:
+        for c in np.nonzero(g.alive[: g.n])[0]:
+            cols = np.concatenate(
+                [3 * pos[int(solver._store_list[s].ids[g.rows[c, k]])] + np.arange(3) for k, s in enumerate(g.slots)]
+            )
+            J = g.J[c]
+            Hs[np.ix_(cols, cols)] += J.T @ J
+    assert any(g.ftype is MarginalFactor for g in solver._group_list)
+    np.testing.assert_allclose(Hs, schur, rtol=1e-9, atol=1e-6)
+    with pytest.raises(GraphError, match="marginalised"):
+        solver.update([PriorFactor.create(Point3Var(np.array([0])), np.zeros(3), Gaussian.isotropic(3, 1.0))])
+
+
+def test_marginal_covariances_match_gtsam() -> None:
+    graph = read_g2o(DATA / "tinyGrid3D.g2o")
+    solver, fed = _replay(graph)
+    solver.optimize()
+    est = solver.estimate()
+    gt_graph, _ = to_gtsam(fed, est)
+    marg = gtsam.Marginals(gt_graph, values_to_gtsam(est))
+    ids = graph.vertex_ids[[0, len(graph.vertex_ids) // 2, -1]]
+    ours = solver.marginal_covariance(Pose3Var(ids))
+    for k, i in enumerate(ids):
+        ref = marg.marginalCovariance(int(i))
+        np.testing.assert_allclose(ours[k], ref, rtol=1e-6, atol=1e-8 * np.abs(ref).max())
+
+
+def test_growth_within_a_bucket_does_not_recompile() -> None:
+    from jaxslam.solvers._incremental import _linearize_batch
+
+    n = 40
+    P, odo = _chain_problem(n, seed=2)
+    _chain_solver(P, odo, n)
+    size = _linearize_batch._cache_size()
+    _chain_solver(P, odo, n)  # same bucket sizes: nothing new to compile
+    assert _linearize_batch._cache_size() == size
