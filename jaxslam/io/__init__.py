@@ -38,6 +38,18 @@ from ._recording import (
     register_format,
 )
 from ._rosbag import LIVOX_CUSTOM_MSG, LIVOX_CUSTOM_POINT, RosbagRecording, livox_types
+from ._writers import (
+    TOPICS,
+    EurocWriter,
+    RecordingWriter,
+    RosbagWriter,
+    image_topic,
+    open_writer,
+    read_pcd,
+    read_ply,
+    write_pcd,
+    write_ply,
+)
 
 __all__ += [
     "LIVOX_CUSTOM_MSG",
@@ -51,4 +63,17 @@ __all__ += [
     "read_image_file",
     "recording_formats",
     "register_format",
+]
+
+__all__ += [
+    "TOPICS",
+    "EurocWriter",
+    "RecordingWriter",
+    "RosbagWriter",
+    "image_topic",
+    "open_writer",
+    "read_pcd",
+    "read_ply",
+    "write_pcd",
+    "write_ply",
 ]

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import InputFormatError
 from ..lie import SE3
-from ..measurements import Image, ImuSample, Measurement
+from ..measurements import Image, ImuSample, LidarScan, Measurement, PositionFix
 from ._trajectory import Trajectory, read_tum
 
 
@@ -215,6 +215,11 @@ class EurocRecording(Recording):
     Ground truth: ``mav0/state_groundtruth_estimate0/data.csv`` (``p_RS_R``, ``q_RS`` wxyz) when
     present; ``ground_truth=<TUM file>`` overrides it. ``cameras=("cam0",)`` picks cameras
     (default: every ``cam*`` folder with a ``data.csv``).
+
+    When present (the layout :class:`~jaxslam.io.EurocWriter` writes): ``mav0/lidar0/data.csv``
+    + ``data/<file>.npy`` (float32 ``(N, 5)`` x y z intensity time-offset, or ``(N, 6)`` with
+    ring) -> :class:`LidarScan`, and ``mav0/total_station0/data.csv`` (``p x y z [m], sigma``)
+    -> :class:`PositionFix`.
     """
 
     def __init__(
@@ -247,6 +252,15 @@ class EurocRecording(Recording):
             if not there.all():
                 self._skipped_at_open[f"{name}: image file missing"] += int((~there).sum())
             self._cams[name] = (ct[there], [f for f, ok in zip(files, there) if ok])
+        self._lidar: tuple[np.ndarray, list[Path]] | None = None
+        if (root / "lidar0" / "data.csv").is_file():
+            lt, lrows = _read_csv(root / "lidar0" / "data.csv", 2)
+            self._lidar = (lt, [root / "lidar0" / "data" / r[0] for r in lrows])
+        self._fixes: tuple[np.ndarray, np.ndarray] | None = None
+        if (root / "total_station0" / "data.csv").is_file():
+            ft, frows = _read_csv(root / "total_station0" / "data.csv", 5)
+            fv = np.array([[float(x) for x in r[:4]] for r in frows], dtype=np.float64).reshape(-1, 4)
+            self._fixes = (ft, fv)
         self.skipped.update(self._skipped_at_open)
 
     def streams(self) -> list[StreamInfo]:
@@ -256,7 +270,30 @@ class EurocRecording(Recording):
 
         out = [info("imu", "imu0", "euroc/imu csv", self._imu_t)]
         out += [info("image", c, "euroc/png", t) for c, (t, _) in self._cams.items()]
+        if self._lidar is not None:
+            out.append(info("lidar", "lidar0", "euroc/npy", self._lidar[0]))
+        if self._fixes is not None:
+            out.append(info("position", "total_station0", "euroc/position csv", self._fixes[0]))
         return out
+
+    def _lidar_records(self) -> Iterator[tuple[int, str, Measurement]]:
+        assert self._lidar is not None
+        for ns, f in zip(self._lidar[0].tolist(), self._lidar[1]):
+            try:
+                a = np.load(f, allow_pickle=False)
+                if a.ndim != 2 or a.shape[1] not in (5, 6):
+                    raise ValueError(f"shape {a.shape}")
+            except (OSError, ValueError):
+                self.skipped["lidar0: unreadable scan"] += 1
+                continue
+            a64 = a.astype(np.float64)
+            ring = a[:, 5].astype(np.int64) if a.shape[1] == 6 else None
+            yield ns, "lidar0", LidarScan(ns / 1e9, a64[:, 0:3], a64[:, 3], a64[:, 4], ring)
+
+    def _fix_records(self) -> Iterator[tuple[int, str, Measurement]]:
+        assert self._fixes is not None
+        for ns, v in zip(self._fixes[0].tolist(), self._fixes[1]):
+            yield ns, "total_station0", PositionFix(ns / 1e9, v[0:3].copy(), float(v[3]))
 
     def _imu_records(self) -> Iterator[tuple[int, str, Measurement]]:
         for ns, v in zip(self._imu_t.tolist(), self._imu):
@@ -274,6 +311,8 @@ class EurocRecording(Recording):
 
     def _records(self) -> Iterator[tuple[str, Measurement]]:
         gens = [self._imu_records()] + [self._cam_records(c) for c in self._cams]
+        gens += [self._lidar_records()] if self._lidar is not None else []
+        gens += [self._fix_records()] if self._fixes is not None else []
         for _, stream, record in heapq.merge(*gens, key=lambda x: x[0]):
             yield stream, record
 
