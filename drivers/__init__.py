@@ -12,9 +12,11 @@ imports ``drivers``. Bad sensor bytes are counted and skipped (each driver's ``c
 never asserted on; device failures raise :class:`drivers._common.DriverError`, bad
 configuration :class:`jaxslam.errors.ConfigError`, both :class:`jaxslam.errors.JaxSlamError`.
 
-TODO: a recorder, ``python -m drivers.record``, that writes these records to a rosbag comes
-with the rosbag writer (it depends on the bag writer, not yet built). Camera (Hikvision USB3
-Vision) driver: not yet.
+* :mod:`drivers.camera` — an OpenCV ``VideoCapture`` device, a video file or an image folder
+  -> :class:`~jaxslam.measurements.Image` (host timestamps). GenICam/USB3 Vision: not yet.
+* :mod:`drivers.record` — ``python -m drivers.record --imu PORT --lidar-port 57000 --camera
+  SRC -o run.bag``: a ROS1 bag written as it goes (chunks flushed every 0.5 s); ``python -m
+  drivers.record reindex run.bag`` repairs a bag whose recorder was killed.
 """
 
 from ._common import Counters, DriverError

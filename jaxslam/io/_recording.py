@@ -174,18 +174,36 @@ def _read_csv(path: Path, ncols: int) -> tuple[np.ndarray, list[list[str]]]:
     """Rows of an ASL csv (``#`` header skipped): int64 ns timestamps and the string fields."""
     times: list[int] = []
     rows: list[list[str]] = []
-    with open(path, newline="") as f:
-        for lineno, row in enumerate(csv.reader(f), start=1):
-            if not row or row[0].lstrip().startswith("#"):
-                continue
-            if len(row) < ncols:
-                raise InputFormatError(f"ASL rows need {ncols} fields, found {len(row)}", path, lineno)
-            try:
-                times.append(int(row[0]))
-            except ValueError:
-                raise InputFormatError(f"timestamp {row[0]!r} is not an integer (ns)", path, lineno) from None
-            rows.append([x.strip() for x in row[1:ncols]])
+    lineno = 0
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            for lineno, row in enumerate(csv.reader(f), start=1):
+                if not row or row[0].lstrip().startswith("#"):
+                    continue
+                if len(row) < ncols:
+                    raise InputFormatError(f"ASL rows need {ncols} fields, found {len(row)}", path, lineno)
+                try:
+                    t = int(row[0])
+                except ValueError:
+                    raise InputFormatError(f"timestamp {row[0]!r} is not an integer (ns)", path, lineno) from None
+                if not -(2**63) <= t < 2**63:
+                    raise InputFormatError(f"timestamp {row[0]!r} does not fit int64 ns", path, lineno)
+                times.append(t)
+                rows.append([x.strip() for x in row[1:ncols]])
+    except UnicodeDecodeError as err:
+        raise InputFormatError(f"not UTF-8 text: {err.reason} at byte {err.start}", path, lineno + 1) from None
+    except csv.Error as err:
+        raise InputFormatError(f"malformed csv: {err}", path, lineno + 1) from None
     return np.asarray(times, dtype=np.int64), rows
+
+
+def _floats(rows: list[list[str]], n: int, path: Path, blank_nan: bool = False) -> np.ndarray:
+    """The first ``n`` fields of each row as float64 (InputFormatError naming a bad field)."""
+    try:
+        vals = [[float(x) if (x or not blank_nan) else np.nan for x in r[:n]] for r in rows]
+    except ValueError as err:
+        raise InputFormatError(f"a field is not a number ({err})", path) from None
+    return np.array(vals, dtype=np.float64).reshape(-1, n)
 
 
 def read_image_file(path: str | Path | bytes) -> np.ndarray:
@@ -236,7 +254,7 @@ class EurocRecording(Recording):
         if not imu_csv.is_file():
             raise InputFormatError("EuRoC folder has no mav0/imu0/data.csv", self.path)
         t, rows = _read_csv(imu_csv, 7)
-        vals = np.array([[float(x) if x else np.nan for x in r] for r in rows], dtype=np.float64).reshape(-1, 6)
+        vals = _floats(rows, 6, imu_csv, blank_nan=True)
         self._imu_t, self._imu = t, vals
         names = sorted(d.name for d in root.glob("cam*") if (d / "data.csv").is_file())
         if cameras is not None:
@@ -259,7 +277,7 @@ class EurocRecording(Recording):
         self._fixes: tuple[np.ndarray, np.ndarray] | None = None
         if (root / "total_station0" / "data.csv").is_file():
             ft, frows = _read_csv(root / "total_station0" / "data.csv", 5)
-            fv = np.array([[float(x) for x in r[:4]] for r in frows], dtype=np.float64).reshape(-1, 4)
+            fv = _floats(frows, 4, root / "total_station0" / "data.csv")
             self._fixes = (ft, fv)
         self.skipped.update(self._skipped_at_open)
 
@@ -324,7 +342,7 @@ class EurocRecording(Recording):
         if not gt.is_file():
             return None
         t, rows = _read_csv(gt, 8)
-        v = np.array([[float(x) for x in r[:7]] for r in rows], dtype=np.float64).reshape(-1, 7)
+        v = _floats(rows, 7, gt)
         q = v[:, 3:7] / np.linalg.norm(v[:, 3:7], axis=1, keepdims=True)
         return Trajectory(t / 1e9, SE3(jnp.asarray(np.concatenate([q, v[:, :3]], axis=1))))
 

@@ -20,6 +20,11 @@ Messages -> records:
 - ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped``, ``nav_msgs/Odometry``,
   ``TransformStamped`` -> :class:`PoseStamped` (qw qx qy qz x y z); ``tf2_msgs/TFMessage`` on
   ``/tf`` only with ``tf=(parent, child)`` (that one transform, leading ``/`` ignored).
+- ``geometry_msgs/PointStamped`` -> :class:`PositionFix` (total-station prism fixes, as the
+  writers and the simulator put them on ``/total_station/prism``): ``point`` (m) and the
+  standard deviation from ``sigma=<m>`` in ``header.frame_id`` (``world;sigma=0.004``); without
+  one the fix gets :data:`DEFAULT_FIX_SIGMA`; a ``sigma=`` that is not a positive number skips
+  the message (counted).
 
 A message that cannot be decoded or converted (a cloud whose buffer is shorter than its
 fields say, an unsupported encoding) is skipped and counted; a read error part-way through a
@@ -33,8 +38,12 @@ that is counted as "time not increasing" and skipped.
 Topics: ``topics={"imu": "/imu", "image": "/cam0/image_raw", ...}`` chooses one topic per kind
 (a missing one raises InputFormatError listing the topics). Otherwise each kind is guessed by
 message type: among several candidates the topic with the most messages wins (for ``pose``, a
-topic whose name contains ``groundtruth``/``ground_truth``/``gt`` wins first); the stream's
-``note`` says so.
+topic whose name contains ``groundtruth``/``ground_truth``/``gt`` wins first; for
+``position``, one whose name contains ``total_station``/``prism``); the stream's ``note`` says so.
+
+A ROS1 bag whose header has no index (a recorder killed before it closed the bag) raises
+InputFormatError saying so; ``python -m drivers.record reindex BAG`` rebuilds the index from
+the chunks that reached the disk.
 """
 
 from __future__ import annotations
@@ -43,6 +52,7 @@ import contextlib
 import heapq
 import itertools
 import re
+import struct
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -51,11 +61,13 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
+from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from ..errors import InputFormatError
 from ..lie import SE3
-from ..measurements import Image, ImuSample, LidarScan, Measurement, PoseStamped
+from ..measurements import Image, ImuSample, LidarScan, Measurement, PoseStamped, PositionFix
 from ._recording import Recording, StreamInfo, read_image_file
 from ._trajectory import Trajectory, read_tum
 
@@ -88,11 +100,73 @@ KINDS: dict[str, tuple[str, ...]] = {
         "nav_msgs/msg/Odometry",
         "geometry_msgs/msg/TransformStamped",
     ),
+    "position": ("geometry_msgs/msg/PointStamped",),
 }
 """Message types read as each record kind."""
 
+DEFAULT_FIX_SIGMA = PositionFix.sigma
+"""Standard deviation (m) of a PointStamped fix whose ``frame_id`` carries no ``sigma=``."""
+
+_SIGMA = re.compile(r"(?:^|[;,\s])sigma=([^;,\s]*)")
+
+
+def fix_sigma(frame_id: str) -> float:
+    """The ``sigma=<m>`` of a PointStamped ``frame_id`` (:data:`DEFAULT_FIX_SIGMA` when absent);
+    raises InputFormatError when it is not a positive finite number."""
+    m = _SIGMA.search(frame_id)
+    if m is None:
+        return float(DEFAULT_FIX_SIGMA)
+    try:
+        sigma = float(m.group(1))
+    except ValueError:
+        raise InputFormatError(f"frame_id {frame_id!r}: sigma is not a number") from None
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise InputFormatError(f"frame_id {frame_id!r}: sigma must be positive and finite")
+    return sigma
+
+
 _GT_NAME = re.compile(r"ground_?truth|(^|[/_])gt($|[/_])", re.IGNORECASE)
-_READ_ERRORS = (AnyReaderError, OSError, ValueError, KeyError, IndexError, EOFError)
+_FIX_NAME = re.compile(r"total_?station|prism", re.IGNORECASE)
+_READ_ERRORS = (
+    AnyReaderError,
+    Rosbag1ReaderError,
+    Rosbag2ReaderError,
+    OSError,
+    ValueError,
+    KeyError,
+    IndexError,
+    EOFError,
+    struct.error,
+    OverflowError,
+    AssertionError,  # rosbags asserts on some inconsistent records
+    MemoryError,  # a corrupt length field asking for an impossible allocation
+)
+"""What rosbags raises on a corrupt file (found by benchmarks/fuzz.py): turned into
+InputFormatError at open, a counted skip per message, or a warning ending the iteration."""
+
+
+_CONVERT_ERRORS = (InputFormatError, ValueError, TypeError, AttributeError, IndexError, OverflowError, MemoryError)
+"""What converting a decoded but inconsistent message raises: the message is skipped and counted."""
+
+
+def _describe(err: BaseException) -> str:
+    if isinstance(err, MemoryError):
+        return "a record declares an impossible size (corrupt file)"
+    return str(err) or type(err).__name__
+
+
+def _unindexed_ros1(path: Path) -> bool:
+    """Whether a file is a ROS1 v2.0 bag whose header says ``index_pos=0`` (never closed)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    key = b"index_pos="
+    i = head.find(key)
+    if not head.startswith(b"#ROSBAG V2.0\n") or i < 0 or len(head) < i + len(key) + 8:
+        return False
+    return int.from_bytes(head[i + len(key) : i + len(key) + 8], "little") == 0
 
 
 def livox_types() -> dict[str, Any]:
@@ -221,7 +295,13 @@ class RosbagRecording(Recording):
             reader = AnyReader([self.path], default_typestore=default_typestore(ros1))
             reader.open()
         except _READ_ERRORS as err:
-            raise InputFormatError(f"cannot read bag: {err}", self.path) from None
+            if ros1 and _unindexed_ros1(self.path):
+                raise InputFormatError(
+                    "ROS1 bag has no index (the recorder was stopped before closing it); "
+                    f"rebuild it with: python -m drivers.record reindex {self.path}",
+                    self.path,
+                ) from None
+            raise InputFormatError(f"cannot read bag: {_describe(err)}", self.path) from None
         try:
             yield reader
         finally:
@@ -245,12 +325,15 @@ class RosbagRecording(Recording):
                 continue
 
             def rank(t: str, kind: str = kind) -> tuple[bool, int, str]:
-                return (kind == "pose" and bool(_GT_NAME.search(t)), self._all[t][1], t)
+                named = (kind == "pose" and bool(_GT_NAME.search(t))) or (
+                    kind == "position" and bool(_FIX_NAME.search(t))
+                )
+                return (named, self._all[t][1], t)
 
             best = max(cands, key=rank)
             note = ""
             if len(cands) > 1:
-                rule = "a ground-truth name, then " if kind == "pose" else ""
+                rule = {"pose": "a ground-truth name, then ", "position": "a total-station name, then "}.get(kind, "")
                 note = f"guessed among {sorted(cands)} by {rule}most messages; pass topics= to choose"
             chosen[kind] = (best, note)
         if self.tf is not None and "pose" not in chosen:
@@ -282,7 +365,7 @@ class RosbagRecording(Recording):
                 yield item
         except _READ_ERRORS as err:
             self.skipped["bag: unreadable remainder"] += 1
-            warnings.warn(f"{self.path}: read stopped after {n} messages: {err}", stacklevel=3)
+            warnings.warn(f"{self.path}: read stopped after {n} messages: {_describe(err)}", stacklevel=3)
 
     def _records(self) -> Iterator[tuple[str, Measurement]]:
         by_topic = {topic: kind for kind, (topic, _) in self._chosen.items()}
@@ -298,7 +381,7 @@ class RosbagRecording(Recording):
                     continue
                 try:
                     recs = self._convert(conn.topic, conn.msgtype, msg, t_recv)
-                except (InputFormatError, ValueError, TypeError, AttributeError, IndexError):
+                except _CONVERT_ERRORS:
                     self.skipped[f"{conn.topic}: malformed message"] += 1
                     continue
                 for rec in recs:
@@ -357,6 +440,13 @@ class RosbagRecording(Recording):
             return [PoseStamped(t, _pose_params(msg.pose.pose.position, msg.pose.pose.orientation))]
         if msgtype == "geometry_msgs/msg/TransformStamped":
             return [PoseStamped(t, _pose_params(msg.transform.translation, msg.transform.rotation))]
+        if msgtype == "geometry_msgs/msg/PointStamped":
+            try:
+                sigma = fix_sigma(msg.header.frame_id)
+            except InputFormatError:
+                self.skipped[f"{topic}: bad sigma in frame_id"] += 1
+                return []
+            return [PositionFix(t, _vec(msg.point), sigma)]
         return []
 
     def ground_truth(self) -> Trajectory | None:

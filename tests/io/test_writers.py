@@ -75,8 +75,8 @@ def test_write_then_read_gives_equal_records(tmp_path, fmt, name, ring):
         gt = rec.ground_truth()
         np.testing.assert_array_equal(gt.timestamps, [p.t for p in poses])
         np.testing.assert_allclose(np.asarray(gt.poses.params), np.stack([p.pose for p in poses]), atol=1e-15)
-    else:  # the bag readers have no PositionFix kind yet: fixes are checked through rosbags below
-        want = [r for r in recs if not isinstance(r, PositionFix)]
+    else:  # bags: every record, fixes included (PointStamped -> PositionFix)
+        want = recs
     assert len(back) == len(want)
     for a, b in zip(want, back):
         _equal(a, b)
