@@ -306,3 +306,40 @@ def test_growth_within_a_bucket_does_not_recompile() -> None:
     size = _linearize_batch._cache_size()
     _chain_solver(P, odo, n)  # same bucket sizes: nothing new to compile
     assert _linearize_batch._cache_size() == size
+
+
+def test_batch_mode_has_the_same_api_and_is_optimal_after_every_update() -> None:
+    n = 10
+    P, odo = _chain_problem(n, seed=4)
+    inc = _chain_solver(P, odo, n)
+    bat = _chain_solver(P, odo, n, IncrementalConfig(mode="batch"))
+    z = np.asarray(SE3(P[-1]).inverse().compose(SE3(P[0])).params)
+    loop = BetweenFactor.create(
+        Pose3Var(np.array([n - 1])), Pose3Var(np.array([0])), z[None], Gaussian.isotropic(6, 0.01)
+    )
+    inc.update([loop])
+    res = bat.update([loop])
+    assert res.full_solve
+    c_bat = bat.cost()
+    inc.optimize()
+    assert abs(inc.cost() - c_bat) <= 1e-9 * max(c_bat, 1.0)
+
+
+@pytest.mark.parametrize("vtype", ["Pose3Var", "Pose2Var", "Rot3Var", "Point3Var"])
+def test_numpy_retract_matches_jaxslam_lie(vtype: str) -> None:
+    import jaxslam.core as core
+    from jaxslam.solvers._incremental import _np_retract
+
+    vt = getattr(core, vtype)
+    rng = np.random.default_rng(0)
+    n = 64
+    x = np.asarray(
+        vt.retract(
+            jnp.broadcast_to(jnp.asarray(vt.identity_params()), (n, vt.param_dim)), rng.normal(size=(n, vt.tangent_dim))
+        )
+    )
+    # tangent steps from 0 through the series threshold to large angles
+    d = rng.normal(size=(n, vt.tangent_dim)) * np.logspace(-9, 0.5, n)[:, None]
+    got = _np_retract(vt, x, d)
+    want = np.asarray(vt.retract(jnp.asarray(x), jnp.asarray(d)))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
