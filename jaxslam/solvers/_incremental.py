@@ -653,13 +653,12 @@ class IncrementalSolver:
             cols_l.append(np.minimum(gp, gq)[keep])
             data_l.append(G[:, g.sel_p, g.sel_q][keep])
             kg = col >= 0
-            np.add.at(grad, col[kg], gv[kg])
+            grad += np.bincount(col[kg], weights=gv[kg], minlength=n)
         rr = np.concatenate([*rows_l, np.arange(n)])
         cc = np.concatenate([*cols_l, np.arange(n)])
         dd = np.concatenate([*data_l, np.zeros(n)])
         if n <= _DENSE_MAX:  # a few variables: dense Cholesky, no sparse bookkeeping
-            Hd = np.zeros((n, n))
-            np.add.at(Hd, (rr, cc), dd)
+            Hd = np.bincount(rr * n + cc, weights=dd, minlength=n * n).reshape(n, n)
             Hd += np.tril(Hd, -1).T
             dz = np.diag(Hd) == 0.0
             Hd[dz, dz] = 1.0  # variables without factors stay put
