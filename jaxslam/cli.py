@@ -299,6 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--clip", type=float, default=2.0, help="CLAHE clip limit (OpenCV semantics)")
     e.add_argument("--gamma", type=float, default=0.5, help="exponent of --method gamma")
     e.set_defaults(func=cmd_enhance)
+    __import__("jaxslam.sim._cli", fromlist=["register"]).register(sub)
+    __import__("jaxslam.vision._features_cli", fromlist=["register"]).register(sub)
+    __import__("jaxslam.vision._vo_cli", fromlist=["register"]).register(sub)
     return p
 
 

@@ -1,0 +1,600 @@
+"""SURF (Bay et al., "Speeded-Up Robust Features", CVIU 2008) as JAX array code, written to
+reproduce OpenCV's ``xfeatures2d::SURF`` (``modules/xfeatures2d/src/surf.cpp``) on 8-bit images.
+
+Pipeline (all under one ``jit``; fixed-size outputs with a validity mask):
+
+1. **Integral image** in int32 (wrap-around arithmetic, as OpenCV's ``CV_32S``: a box sum is
+   exact whenever the true sum fits in 31 bits). float32 sums lose detector parity.
+2. **Hessian layers**: octave ``o``, layer ``l`` in ``0..L+1`` uses box filters of size
+   ``(9 + 6 l) << o`` sampled every ``2**o`` pixels; each lobe is weighted by 1/area (float32),
+   terms summed in double, then ``det = Dxx Dyy - 0.81 Dxy^2`` in float32 (8-bit intensity
+   units squared: OpenCV's ``hessianThreshold`` meaning), ``trace = Dxx + Dyy``.
+3. **Detection** on the ``L`` middle layers: ``det > threshold`` and strictly greater than its 26
+   neighbours (3x3x3), inside OpenCV's margin; then one Newton step of a 3-D quadratic fit
+   (Brown & Lowe) — kept only if every offset is within one sample; the size is rounded.
+   At most ``max_keypoints`` survive, by OpenCV's keypoint order (response, then size, ...).
+4. **Orientation**: Haar responses (wavelet ``4s``, ``s = 1.2 size / 9``) at the 113 integer
+   points of a radius-6 disc, Gaussian (sigma 2.5) weighted; a 60° window slid in 5° steps
+   over the rounded sample angles; the direction of the longest window sum. ``upright``
+   fixes it at 270° like OpenCV.
+5. **Descriptor**: a ``int(21 s)`` pixel window rotated to the keypoint direction (bilinear,
+   rounded to 8 bits), area-resized to 21x21 (OpenCV's ``INTER_AREA`` table), 2x2 Haar
+   gradients weighted by a 20x20 Gaussian (sigma 3.3), sums of ``dx, dy, |dx|, |dy|`` over 4x4
+   cells, normalised to unit length. Keypoints are sorted by window size; each static window
+   class (15 sizes, 28..768 px) runs its own loop over chunks of its keypoints.
+
+Keypoint columns: ``x, y, size, angle_deg, response, octave, laplacian_sign`` (OpenCV's
+``KeyPoint`` with ``class_id`` = sign of the Laplacian).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+HAAR_SIZE0 = 9
+HAAR_SIZE_INC = 6
+ORI_RADIUS = 6
+ORI_WIN = 60
+ORI_SEARCH_INC = 5
+ORI_SIGMA = 2.5
+DESC_SIGMA = 3.3
+PATCH_SZ = 20
+CHUNK_SAMPLES = 96 * 96 * 16  # window samples per descriptor chunk
+
+_F32 = jnp.float32
+_f32 = np.float32
+# OpenCV's fastAtan2 polynomial (degrees), coefficients rounded to float32 as in core.
+_ATAN_P = [
+    _f32(_f32(c) * _f32(180 / math.pi))
+    for c in (0.9997878412794807, -0.3258083974640975, 0.1555786518463281, -0.04432655554792128)
+]
+_DBL_EPS_F32 = _f32(np.finfo(np.float64).eps)
+_FLT_EPS = _f32(np.finfo(np.float32).eps)
+
+
+# OpenCV 5's getGaussianKernel(20, 3.3, CV_32F) (first half; symmetric). For an even length it
+# is not the sampled Gaussian (up to 0.9 % off it); the descriptor weights need its exact taps.
+_DESC_TAPS_CV5 = np.array(
+    [
+        0.0019170277519151568,
+        0.004380760248750448,
+        0.009132515639066696,
+        0.017368055880069733,
+        0.030132275074720383,
+        0.04769057035446167,
+        0.06885777413845062,
+        0.09069708734750748,
+        0.10898169875144958,
+        0.12084222584962845,
+    ],
+    np.float32,
+)
+
+
+def gaussian_kernel(n: int, sigma: float) -> np.ndarray:
+    """``cv::getGaussianKernel(n, sigma, CV_32F)`` for the two kernels SURF uses: odd ``n`` is
+    the sampled Gaussian, float32 taps normalised in double; ``(20, 3.3)`` is OpenCV 5's table."""
+    if (n, sigma) == (PATCH_SZ, DESC_SIGMA):
+        return np.concatenate([_DESC_TAPS_CV5, _DESC_TAPS_CV5[::-1]])
+    x = np.arange(n, dtype=np.float64) - (n - 1) * 0.5
+    t = np.exp((-0.5 / (sigma * sigma)) * x * x).astype(np.float32)
+    s = 1.0 / float(np.sum(t.astype(np.float64)))
+    return (t.astype(np.float64) * s).astype(np.float32)
+
+
+def _resize_pattern(src, old: int, new: int):
+    """OpenCV ``resizeHaarPattern`` without the pointer offsets: boxes
+    ``(dx1, dy1, dx2, dy2, weight_f32)`` scaled from an ``old``- to a ``new``-pixel filter."""
+    ratio = _f32(new) / _f32(old)
+    out = []
+    for dx1, dy1, dx2, dy2, w in src:
+        x1, y1, x2, y2 = (int(np.rint(_f32(ratio * _f32(v)))) for v in (dx1, dy1, dx2, dy2))
+        out.append((x1, y1, x2, y2, _f32(_f32(w) / (_f32(x2 - x1) * _f32(y2 - y1)))))
+    return out
+
+
+_DX9 = ((0, 2, 3, 7, 1), (3, 2, 6, 7, -2), (6, 2, 9, 7, 1))
+_DY9 = ((2, 0, 7, 3, 1), (2, 3, 7, 6, -2), (2, 6, 7, 9, 1))
+_DXY9 = ((1, 1, 4, 4, 1), (5, 1, 8, 4, -1), (1, 5, 4, 8, -1), (5, 5, 8, 8, 1))
+
+
+@functools.lru_cache(maxsize=32)
+def layer_plan(h: int, w: int, n_octaves: int, n_layers: int) -> tuple[dict, ...]:
+    """Static description of every Hessian layer of an ``h x w`` image."""
+    plan = []
+    for o in range(n_octaves):
+        step = 1 << o
+        for layer in range(n_layers + 2):
+            size = (HAAR_SIZE0 + HAAR_SIZE_INC * layer) << o
+            rows, cols = h // step, w // step
+            computed = size <= h and size <= w
+            plan.append(
+                {
+                    "octave": o,
+                    "layer": layer,
+                    "size": size,
+                    "step": step,
+                    "rows": rows,
+                    "cols": cols,
+                    "computed": computed,
+                    "ni": 1 + (h - size) // step if computed else 0,
+                    "nj": 1 + (w - size) // step if computed else 0,
+                    "margin": (size // 2) // step,
+                    "dx": _resize_pattern(_DX9, 9, size),
+                    "dy": _resize_pattern(_DY9, 9, size),
+                    "dxy": _resize_pattern(_DXY9, 9, size),
+                }
+            )
+    return tuple(plan)
+
+
+def integral_image(img_u8: jax.Array) -> jax.Array:
+    """``cv::integral(img, sum, CV_32S)``: ``(H+1, W+1)`` int32 with a zero first row/column."""
+    s = jnp.cumsum(jnp.cumsum(img_u8.astype(jnp.int32), axis=0), axis=1)
+    return jnp.pad(s, ((1, 0), (1, 0)))
+
+
+def _corner(S, dy: int, dx: int, step: int, ni: int, nj: int):
+    return lax.slice(S, (dy, dx), (dy + step * (ni - 1) + 1, dx + step * (nj - 1) + 1), (step, step))
+
+
+def _haar_grid(S, boxes, step: int, ni: int, nj: int):
+    """OpenCV ``calcHaarPattern`` on a strided grid: int box sums times float32 weights,
+    accumulated in double, rounded to float32."""
+    acc = jnp.zeros((ni, nj), jnp.float64)
+    for x1, y1, x2, y2, wgt in boxes:
+        box = (
+            _corner(S, y1, x1, step, ni, nj)
+            + _corner(S, y2, x2, step, ni, nj)
+            - _corner(S, y2, x1, step, ni, nj)
+            - _corner(S, y1, x2, step, ni, nj)
+        )
+        term = (box.astype(_F32) * wgt).astype(jnp.float64)
+        acc = acc + term  # 0 + t1 + t2 ... in double, as OpenCV
+    return acc.astype(_F32)
+
+
+def _det_trace(S, lp: dict):
+    """Determinant and trace of one layer, ``(rows, cols)`` float32; -inf (det) where the
+    filter does not fit (OpenCV leaves those cells unset and never reads them)."""
+    rows, cols = lp["rows"], lp["cols"]
+    if not lp["computed"]:
+        return jnp.full((rows, cols), -jnp.inf, _F32), jnp.zeros((rows, cols), _F32)
+    st, ni, nj, m = lp["step"], lp["ni"], lp["nj"], lp["margin"]
+    dx = _haar_grid(S, lp["dx"], st, ni, nj)
+    dy = _haar_grid(S, lp["dy"], st, ni, nj)
+    dxy = _haar_grid(S, lp["dxy"], st, ni, nj)
+    det = dx * dy - (_f32(0.81) * dxy) * dxy
+    pad = ((m, rows - m - ni), (m, cols - m - nj))
+    return jnp.pad(det, pad, constant_values=-jnp.inf), jnp.pad(dx + dy, pad)
+
+
+def _max3x3(a):
+    """3x3 maximum over the last two axes (centre included), -inf outside."""
+    pad = ((0, 0),) * (a.ndim - 2) + ((1, 1), (1, 1))
+    return lax.reduce_window(a, -jnp.inf, lax.max, (1,) * (a.ndim - 2) + (3, 3), (1,) * a.ndim, pad)
+
+
+def _max8(a):
+    """Maximum of the 8 neighbours over the last two axes (centre excluded), -inf outside."""
+    lead = (1,) * (a.ndim - 2)
+    h3 = lax.reduce_window(a, -jnp.inf, lax.max, (*lead, 1, 3), (1,) * a.ndim, ((0, 0),) * (a.ndim - 1) + ((1, 1),))
+    p = jnp.pad(h3, ((0, 0),) * (a.ndim - 2) + ((1, 1), (0, 0)), constant_values=-jnp.inf)
+    q = jnp.pad(a, ((0, 0),) * (a.ndim - 2) + ((0, 0), (1, 1)), constant_values=-jnp.inf)
+    return jnp.maximum(jnp.maximum(p[..., :-2, :], p[..., 2:, :]), jnp.maximum(q[..., :-2], q[..., 2:]))
+
+
+def _solve3(A, b):
+    """Batched 3x3 solve by Cramer's rule in float64; ``ok`` False where singular."""
+    A = A.astype(jnp.float64)
+    b = b.astype(jnp.float64)
+
+    def det3(M):
+        return (
+            M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+            - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+            + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0])
+        )
+
+    d = det3(A)
+    ok = jnp.abs(d) > 1e-300
+    dsafe = jnp.where(ok, d, 1.0)
+    xs = [det3(A.at[..., :, k].set(b)) / dsafe for k in range(3)]
+    return jnp.stack(xs, -1), ok
+
+
+def _octave_keypoints(D, T, lps: list, threshold, cap: int):
+    """Candidates of the middle layers of one octave (``D``, ``T``: ``(L + 2, rows, cols)``
+    determinants and traces): 3x3x3 NMS inside OpenCV's margin, at most ``cap`` per layer
+    (best responses), then the quadratic interpolation. Returns a dict of ``(L * cap,)``."""
+    nl = D.shape[0] - 2
+    rows, cols, st = lps[0]["rows"], lps[0]["cols"], lps[0]["step"]
+    cap = min(cap, rows * cols)
+    m3 = _max3x3(D)
+    nbmax = jnp.maximum(jnp.maximum(m3[:-2], m3[2:]), _max8(D[1:-1]))
+    margin = np.array([(lps[k + 1]["size"] // 2) // st + 1 for k in range(1, nl + 1)], np.int32)[:, None, None]
+    ii = jnp.arange(rows)[None, :, None]
+    jj = jnp.arange(cols)[None, None, :]
+    inside = (ii >= margin) & (ii < rows - margin) & (jj >= margin) & (jj < cols - margin)
+    mid = D[1:-1]
+    cand = inside & (mid > threshold) & (mid > nbmax)
+    top, idx = lax.top_k(jnp.where(cand, mid, -jnp.inf).reshape(nl, rows * cols), cap)
+    valid = (top > -jnp.inf).ravel()
+    lay = jnp.repeat(jnp.arange(nl, dtype=jnp.int32), cap)
+    i, j = (idx // cols).ravel().astype(jnp.int32), (idx % cols).ravel().astype(jnp.int32)
+    blk = jax.vmap(lambda k, r, c: lax.dynamic_slice(D, (k, r - 1, c - 1), (3, 3, 3)))(lay, i, j).reshape(-1, 3, 9)
+    trace = jax.vmap(lambda k, r, c: lax.dynamic_slice(T, (k + 1, r, c), (1, 1, 1)))(lay, i, j).reshape(-1)
+    N = [[blk[:, a, k] for k in range(9)] for a in range(3)]
+    half = _f32(0.5)
+    b = -jnp.stack([(N[1][5] - N[1][3]) / 2, (N[1][7] - N[1][1]) / 2, (N[2][4] - N[0][4]) / 2], -1)
+    dxx = N[1][3] - 2 * N[1][4] + N[1][5]
+    dyy = N[1][1] - 2 * N[1][4] + N[1][7]
+    dss = N[0][4] - 2 * N[1][4] + N[2][4]
+    dxy = (N[1][8] - N[1][6] - N[1][2] + N[1][0]) / 4
+    dxs = (N[2][5] - N[2][3] - N[0][5] + N[0][3]) / 4
+    dys = (N[2][7] - N[2][1] - N[0][7] + N[0][1]) / 4
+    A = jnp.stack([jnp.stack([dxx, dxy, dxs], -1), jnp.stack([dxy, dyy, dys], -1), jnp.stack([dxs, dys, dss], -1)], -2)
+    x, solved = _solve3(A, b)
+    x = x.astype(_F32)
+    ok = solved & jnp.any(x != 0, -1) & jnp.all(jnp.abs(x) <= 1, -1) & jnp.all(jnp.isfinite(x), -1)
+    sizes = jnp.asarray([lp["size"] for lp in lps], jnp.int32)
+    size = sizes[lay + 1]
+    ds = size - sizes[lay]
+    h = (size // 2) // st
+    cy = (st * (i - h)).astype(_F32) + (size - 1).astype(_F32) * half
+    cx = (st * (j - h)).astype(_F32) + (size - 1).astype(_F32) * half
+    return {
+        "x": cx + x[:, 0] * _f32(st),
+        "y": cy + x[:, 1] * _f32(st),
+        "size": jnp.round(size.astype(_F32) + x[:, 2] * ds.astype(_F32)),
+        "response": N[1][4],
+        "octave": jnp.full((nl * cap,), lps[0]["octave"], jnp.int32),
+        "lap": jnp.sign(trace).astype(jnp.int32),
+        "valid": valid & ok,
+    }
+
+
+def detect(img_u8: jax.Array, threshold, max_keypoints: int, n_octaves: int = 4, n_layers: int = 3):
+    """Fast-Hessian detector. Returns a dict of ``(max_keypoints,)`` arrays in OpenCV's order
+    (valid entries first)."""
+    h, w = img_u8.shape
+    plan = layer_plan(h, w, n_octaves, n_layers)
+    S = integral_image(img_u8)
+    dets = [_det_trace(S, lp) for lp in plan]
+    parts = []
+    nl = n_layers + 2
+    thr = jnp.asarray(threshold, _F32)
+    for o in range(n_octaves):
+        lps = list(plan[o * nl : (o + 1) * nl])
+        if not lps[2]["computed"]:  # no middle layer of this octave can hold a maximum
+            continue
+        D = jnp.stack([dets[k][0] for k in range(o * nl, (o + 1) * nl)])
+        T = jnp.stack([dets[k][1] for k in range(o * nl, (o + 1) * nl)])
+        parts.append(_octave_keypoints(D, T, lps, thr, max_keypoints))
+    if not parts:
+        z = jnp.zeros((max_keypoints,), _F32)
+        zi = jnp.zeros((max_keypoints,), jnp.int32)
+        return {"x": z, "y": z, "size": z, "response": z, "octave": zi, "lap": zi, "valid": zi > 0}
+    kp = {key: jnp.concatenate([p[key] for p in parts]) for key in parts[0]}
+    # OpenCV's KeypointGreater: response desc, size desc, octave desc, y desc, x asc.
+    order = jnp.lexsort((kp["x"], -kp["y"], -kp["octave"], -kp["size"], -kp["response"], ~kp["valid"]))
+    order = order[:max_keypoints]
+    out = {key: v[order] for key, v in kp.items()}
+    if out["x"].shape[0] < max_keypoints:  # fewer candidate slots than the cap
+        pad = max_keypoints - out["x"].shape[0]
+        out = {key: jnp.pad(v, (0, pad)) for key, v in out.items()}
+    return out
+
+
+# ----------------------------------------------------------------------------- orientation
+
+
+def fast_atan2_deg(y, x):
+    """OpenCV ``fastAtan2`` / ``phase(..., angleInDegrees=True)``: float32, ``[0, 360)``."""
+    y = y.astype(_F32)
+    x = x.astype(_F32)
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    big = ax >= ay
+    c = jnp.where(big, ay / (ax + _DBL_EPS_F32), ax / (ay + _DBL_EPS_F32))
+    c2 = c * c
+    p = (((_ATAN_P[3] * c2 + _ATAN_P[2]) * c2 + _ATAN_P[1]) * c2 + _ATAN_P[0]) * c
+    a = jnp.where(big, p, _f32(90) - p)
+    a = jnp.where(x < 0, _f32(180) - a, a)
+    return jnp.where(y < 0, _f32(360) - a, a)
+
+
+@functools.lru_cache(maxsize=1)
+def _ori_samples():
+    g = gaussian_kernel(2 * ORI_RADIUS + 1, ORI_SIGMA)
+    pts, wts = [], []
+    for i in range(-ORI_RADIUS, ORI_RADIUS + 1):
+        for j in range(-ORI_RADIUS, ORI_RADIUS + 1):
+            if i * i + j * j <= ORI_RADIUS * ORI_RADIUS:
+                pts.append((i, j))
+                wts.append(_f32(g[i + ORI_RADIUS] * g[j + ORI_RADIUS]))
+    return np.array(pts, np.int32), np.array(wts, np.float32)
+
+
+@functools.lru_cache(maxsize=1)
+def _window_members() -> np.ndarray:
+    """``(360, 72)`` 0/1: angle bin ``b`` lies in the 60° window starting at ``5 k``
+    (OpenCV: ``|round(angle) - 5 k| < 30`` or ``> 330``; angle 360 falls in bin 0)."""
+    b = np.arange(360)[:, None]
+    d = np.abs(b - np.arange(0, 360, ORI_SEARCH_INC)[None, :])
+    return ((d < ORI_WIN // 2) | (d > 360 - ORI_WIN // 2)).astype(np.float32)
+
+
+def _scale(size):
+    return (size.astype(_F32) * _f32(1.2)) / _f32(9.0)
+
+
+def orientation(S, x, y, size, valid):
+    """Dominant direction (degrees) and whether it could be sampled."""
+    pts, wts = _ori_samples()
+    hs, ws = S.shape
+    s = _scale(size)
+    g = (2 * jnp.round(2 * s)).astype(jnp.int32)
+    half = g // 2
+    off = (g - 1).astype(_F32) / _f32(2)
+    px = jnp.round((x[:, None] + _f32(pts[None, :, 0]) * s[:, None]) - off[:, None]).astype(jnp.int32)
+    py = jnp.round((y[:, None] + _f32(pts[None, :, 1]) * s[:, None]) - off[:, None]).astype(jnp.int32)
+    G, Hf = g[:, None], half[:, None]
+    inb = (py >= 0) & (py < hs - G) & (px >= 0) & (px < ws - G) & valid[:, None]
+    pxs, pys = jnp.where(inb, px, 0), jnp.where(inb, py, 0)
+    flat = S.ravel()
+    base = pys * ws + pxs
+    offs = [(0, 0), (0, Hf), (0, G), (Hf, 0), (Hf, G), (G, 0), (G, Hf), (G, G)]
+    idx = lax.optimization_barrier(jnp.stack([base + dy * ws + dx for dy, dx in offs]))
+    c00, c0h, c0g, ch0, chg, cg0, cgh, cgg = lax.optimization_barrier(flat[idx])  # gathers apart
+    area = (Hf * G).astype(_F32)
+    w_neg, w_pos = _f32(-1) / area, _f32(1) / area
+    left = c00 + cgh - cg0 - c0h
+    right = c0h + cgg - cgh - c0g
+    top = c00 + chg - ch0 - c0g
+    bottom = ch0 + cgg - cg0 - chg
+    vx = ((left.astype(_F32) * w_neg).astype(jnp.float64) + (right.astype(_F32) * w_pos)).astype(_F32)
+    vy = ((top.astype(_F32) * w_pos).astype(jnp.float64) + (bottom.astype(_F32) * w_neg)).astype(_F32)
+    X = jnp.where(inb, vx * wts[None], 0)
+    Y = jnp.where(inb, vy * wts[None], 0)
+    ang = jnp.round(fast_atan2_deg(Y, X)).astype(jnp.int32)
+    X, Y, ang = lax.optimization_barrier((X, Y, ang))  # keep the histogram scatter apart
+    # Window sums from a circular 360-bin histogram of the rounded angles (360 is bin 0):
+    # the window at ``i`` takes the bins ``i - 29 .. i + 29`` (|angle - i| < 30 or > 330).
+    n = X.shape[0]
+    rows = jnp.broadcast_to(jnp.arange(n)[:, None], ang.shape)
+    bins = ang % 360
+    member = _window_members()
+
+    flat_bin = lax.optimization_barrier((rows * 360 + bins).ravel())
+    hx = jnp.zeros((n * 360,), _F32).at[flat_bin].add(X.ravel())
+    hy = jnp.zeros((n * 360,), _F32).at[flat_bin].add(Y.ravel())
+    hist = lax.optimization_barrier(jnp.stack([hx, hy]).reshape(2, n, 360).swapaxes(0, 1))
+    sums = jnp.matmul(hist, member[None], precision=lax.Precision.HIGHEST)  # (n, 2, 72)
+    sx, sy = sums[:, 0], sums[:, 1]
+    mod = sx * sx + sy * sy
+    # first window of the largest modulus (argmax is a slow variadic reduction on CPU)
+    best = jnp.max(mod, -1, keepdims=True)
+    idx = jnp.arange(mod.shape[-1], dtype=jnp.int32)[None, :]
+    k = jnp.min(jnp.where(mod == best, idx, mod.shape[-1]), -1, keepdims=True)
+    pick = (idx == k) & (best > 0)
+    bx = jnp.sum(jnp.where(pick, sx, 0), -1)
+    by = jnp.sum(jnp.where(pick, sy, 0), -1)
+    return fast_atan2_deg(-by, bx), jnp.any(inb, -1)
+
+
+# ----------------------------------------------------------------------------- descriptor
+
+
+def _window_classes(max_win: int) -> tuple[int, ...]:
+    base = [28, 32, 36, 40, 48, 56, 64, 80, 96, 128, 192, 256, 384, 512, 768]
+    out = [b for b in base if b < max_win]
+    top = base[-1]
+    while top < max_win:
+        top *= 2
+        if top >= max_win:
+            break
+    out.append(max(top, max_win) if max_win > base[-1] else next(b for b in base if b >= max_win))
+    return tuple(sorted(set(out)))
+
+
+def _area_matrix(win, wb: int):
+    """OpenCV ``INTER_AREA`` weights (``computeResizeAreaTab``) from ``win`` to 21 samples,
+    as a ``(..., 21, wb)`` float32 matrix (zero beyond ``win``)."""
+    m = PATCH_SZ + 1
+    n = win.astype(jnp.float64)[..., None, None]
+    scale = 1.0 / (m / n)
+    lead = (1,) * (n.ndim - 2)
+    d = jnp.arange(m, dtype=jnp.float64).reshape((*lead, m, 1))
+    sidx = jnp.arange(wb, dtype=jnp.float64).reshape((*lead, 1, wb))
+    f1 = d * scale
+    f2 = f1 + scale
+    cw = jnp.minimum(scale, n - f1)
+    s2 = jnp.minimum(jnp.floor(f2), n - 1)
+    s1 = jnp.minimum(jnp.ceil(f1), s2)
+    left = jnp.where((sidx == s1 - 1) & (s1 - f1 > 1e-3), (s1 - f1) / cw, 0.0)
+    full = jnp.where((sidx >= s1) & (sidx < s2), 1.0 / cw, 0.0)
+    right = jnp.where((sidx == s2) & (f2 - s2 > 1e-3), jnp.minimum(jnp.minimum(f2 - s2, 1.0), cw) / cw, 0.0)
+    return (left.astype(_F32) + full.astype(_F32) + right.astype(_F32)).astype(_F32)
+
+
+def pack_quads(img):
+    """``(H, W)`` uint32 holding each pixel's 2x2 neighbourhood (x, x+1, y+1, both; clamped
+    at the last row/column) in its four bytes, so that a bilinear sample is one gather."""
+    i = img.astype(jnp.uint32)
+    right = jnp.concatenate([i[:, 1:], i[:, -1:]], 1)
+    down = jnp.concatenate([i[1:], i[-1:]], 0)
+    diag = jnp.concatenate([right[1:], right[-1:]], 0)
+    return i | (right << 8) | (down << 16) | (diag << 24)
+
+
+def _sample_window(img, quad, cx, cy, win, ang, wb: int, upright: bool):
+    """The ``wb x wb`` window of one batch of keypoints (OpenCV's rotated/bilinear or upright
+    nearest extraction, 8-bit rounded), zero-padded beyond ``win``. ``(C, wb, wb)`` float32."""
+    h, w = img.shape
+    flat = img.ravel()
+    ii = jnp.arange(wb)[None, :, None]
+    jj = jnp.arange(wb)[None, None, :]
+    off = -((win - 1).astype(_F32) / _f32(2))
+    if upright:
+        sx = jnp.round(cx + off).astype(jnp.int32)[:, None, None]
+        sy = jnp.round(cy - off).astype(jnp.int32)[:, None, None]
+        xx = jnp.clip(sx + ii, 0, w - 1)
+        yy = jnp.clip(sy - jj, 0, h - 1)
+        v = flat[yy * w + xx].astype(_F32)
+    else:
+        rad = ang * _f32(math.pi / 180)
+        sin_d = -jnp.sin(rad)
+        cos_d = jnp.cos(rad)
+        start_x = (cx + off * cos_d) + off * sin_d
+        start_y = (cy - off * sin_d) + off * cos_d
+        sd, cd = sin_d[:, None, None], cos_d[:, None, None]
+        fi, fj = ii.astype(_F32), jj.astype(_F32)
+        px = (start_x[:, None, None] + fi * sd) + fj * cd
+        py = (start_y[:, None, None] + fi * cd) - fj * sd
+        fx, fy = jnp.floor(px), jnp.floor(py)
+        ix, iy = fx.astype(jnp.int32), fy.astype(jnp.int32)  # float32 here (OpenCV: double)
+        inner = (ix >= 0) & (ix < w - 1) & (iy >= 0) & (iy < h - 1)
+        a = (px - fx).astype(_F32)
+        b = (py - fy).astype(_F32)
+        # Outside the bilinear area OpenCV takes the nearest clamped pixel: the same formula
+        # with zero weights at that pixel. One gather of the packed 2x2 neighbourhood.
+        nx = jnp.clip(jnp.round(px), 0, w - 1).astype(jnp.int32)
+        ny = jnp.clip(jnp.round(py), 0, h - 1).astype(jnp.int32)
+        a = jnp.where(inner, a, 0)
+        b = jnp.where(inner, b, 0)
+        idx = jnp.where(inner, iy, ny) * w + jnp.where(inner, ix, nx)
+        idx, a, b = lax.optimization_barrier((idx, a, b))  # keep the gather out of the fusions
+        q = lax.optimization_barrier(quad.ravel()[idx])
+        i00, i01 = (q & 255).astype(_F32), ((q >> 8) & 255).astype(_F32)
+        i10, i11 = ((q >> 16) & 255).astype(_F32), (q >> 24).astype(_F32)
+        one = _f32(1)
+        bil = i00 * (one - a) * (one - b) + i01 * a * (one - b) + i10 * (one - a) * b + i11 * a * b
+        v = jnp.round(bil)
+    keep = (ii < win[:, None, None]) & (jj < win[:, None, None])
+    return jnp.where(keep, v, 0)
+
+
+@functools.lru_cache(maxsize=1)
+def _desc_weights() -> np.ndarray:
+    g = gaussian_kernel(PATCH_SZ, DESC_SIGMA)
+    return (g[:, None] * g[None, :]).astype(np.float32)
+
+
+def _describe_batch(img, quad, cx, cy, win, ang, wb: int, upright: bool):
+    """64-d descriptors of a batch of keypoints whose windows fit in ``wb``."""
+    W = _sample_window(img, quad, cx, cy, win, ang, wb, upright)
+    A = _area_matrix(win, wb)
+    W, A = lax.optimization_barrier((W, A))
+    g = jnp.einsum("cpi,cij,cqj->cpq", A, W, A, precision=lax.Precision.HIGHEST)
+    g = lax.optimization_barrier(g).astype(jnp.float64)
+    scale = win.astype(jnp.float64) / (PATCH_SZ + 1)
+    two = (jnp.abs(scale - 2.0) < 1e-12)[:, None, None]
+    block = jnp.round(g * 4.0)  # exact 2x2 sums when scale == 2
+    P = jnp.where(two, jnp.floor((block + 2) / 4), jnp.round(g))
+    P = jnp.clip(P, 0, 255).astype(jnp.int32)
+    dw = _desc_weights()
+    dx = (P[:, :-1, 1:] - P[:, :-1, :-1] + P[:, 1:, 1:] - P[:, 1:, :-1]).astype(_F32) * dw[None]
+    dy = (P[:, 1:, :-1] - P[:, :-1, :-1] + P[:, 1:, 1:] - P[:, :-1, 1:]).astype(_F32) * dw[None]
+    cells = jnp.stack([dx, dy, jnp.abs(dx), jnp.abs(dy)], -1)  # (C, 20, 20, 4)
+    c = cells.shape[0]
+    vec = cells.reshape(c, 4, 5, 4, 5, 4).astype(jnp.float64).sum((2, 4)).astype(_F32)  # (C, 4, 4, 4)
+    vec = vec.reshape(c, 64)
+    mag = jnp.sum((vec * vec).astype(jnp.float64), -1)
+    sc = (1.0 / (jnp.sqrt(mag) + float(_FLT_EPS))).astype(_F32)
+    return vec * sc[:, None]
+
+
+def describe(img, x, y, size, ang, valid, upright: bool, max_win: int):
+    """Descriptors ``(N, 64)`` of the keypoints. Keypoints are sorted by window size; each
+    static window class runs a loop (dynamic trip count) over chunks of its own keypoints,
+    with chunks of about ``CHUNK_SAMPLES`` window samples."""
+    n = x.shape[0]
+    s = _scale(size)
+    win = jnp.where(valid, (_f32(PATCH_SZ + 1) * s).astype(jnp.int32), 0)
+    classes = _window_classes(max_win)
+    bounds = jnp.asarray(classes, jnp.int32)
+    cls = jnp.where(valid, jnp.searchsorted(bounds, win, side="left"), len(classes))
+    order = jnp.argsort(cls, stable=True)
+    scls = cls[order]
+    cmax = max(max(1, CHUNK_SAMPLES // (wb * wb)) for wb in classes)
+
+    def prep(a):
+        return jnp.pad(a[order], (0, cmax))
+
+    cx, cy, wn, an = prep(x), prep(y), prep(win), prep(ang)
+    quad = None if upright else pack_quads(img)
+    parts = []  # one buffer per class: independent loops, which XLA may run concurrently
+    for c, wb in enumerate(classes):
+        csz = max(1, CHUNK_SAMPLES // (wb * wb))
+        lo = jnp.searchsorted(scls, c, side="left").astype(jnp.int32)
+        hi = jnp.searchsorted(scls, c, side="right").astype(jnp.int32)
+
+        def body(it, acc, lo=lo, hi=hi, csz=csz, wb=wb):
+            start = lo + it * csz
+            bx, by, bw, ba = (lax.dynamic_slice(a, (start,), (csz,)) for a in (cx, cy, wn, an))
+            mine = start + jnp.arange(csz, dtype=jnp.int32) < hi
+            d = _describe_batch(img, quad, bx, by, jnp.where(mine, bw, 1), ba, wb, upright)
+            return lax.dynamic_update_slice(acc, jnp.where(mine[:, None], d, 0), (start, jnp.int32(0)))
+
+        zero = jnp.zeros((n + cmax, 64), _F32)
+        parts.append(lax.fori_loop(0, (hi - lo + csz - 1) // csz, body, zero))
+    out = functools.reduce(jnp.add, parts)
+    return jnp.zeros((n, 64), _F32).at[order].set(out[:n])
+
+
+def max_window(plan) -> int:
+    """Largest descriptor window a keypoint of this pyramid can ask for (0 if none can be
+    detected): the largest middle layer whose upper neighbour fits, plus one size step."""
+    nl = sum(1 for lp in plan if lp["octave"] == 0)
+    best = 0
+    for k, lp in enumerate(plan):
+        if 0 < lp["layer"] < nl - 1 and plan[k + 1]["computed"]:
+            size = _f32(lp["size"] + (lp["size"] - plan[k - 1]["size"]))
+            s = (size * _f32(1.2)) / _f32(9.0)
+            best = max(best, int(_f32(PATCH_SZ + 1) * s) + 1)
+    return best
+
+
+@functools.partial(jax.jit, static_argnames=("max_keypoints", "n_octaves", "n_layers", "upright", "descriptors"))
+def surf_u8(
+    img_u8: jax.Array,
+    threshold,
+    max_keypoints: int = 8192,
+    n_octaves: int = 4,
+    n_layers: int = 3,
+    upright: bool = False,
+    descriptors: bool = True,
+):
+    """SURF on one 8-bit grey image ``(H, W)``. Returns ``(keypoints (N, 7) float32,
+    descriptors (N, 64) float32, valid (N,) bool)`` with ``N = max_keypoints``; valid rows come
+    first, in OpenCV's order. Invalid rows are zero."""
+    kp = detect(img_u8, threshold, max_keypoints, n_octaves, n_layers)
+    S = integral_image(img_u8)
+    hs, ws = S.shape
+    s = _scale(kp["size"])
+    g = 2 * jnp.round(2 * s).astype(jnp.int32)
+    valid = kp["valid"] & (hs >= g) & (ws >= g)
+    if upright:
+        ang = jnp.full(kp["x"].shape, 270.0, _F32)
+    else:
+        ang, sampled = orientation(S, kp["x"], kp["y"], kp["size"], valid)
+        valid = valid & sampled
+    # Compact: deleted keypoints leave, order kept.
+    order = jnp.argsort(~valid, stable=True)
+    valid = valid[order]
+    x, y, size, ang = kp["x"][order], kp["y"][order], kp["size"][order], ang[order]
+    cols = [x, y, size, ang, kp["response"][order], kp["octave"][order].astype(_F32), kp["lap"][order].astype(_F32)]
+    keypoints = jnp.where(valid[:, None], jnp.stack(cols, -1), 0)
+    mw = max_window(layer_plan(*img_u8.shape, n_octaves, n_layers))
+    if descriptors and mw > 0:
+        desc = describe(img_u8, x, y, size, ang, valid, upright, mw)
+        desc = jnp.where(valid[:, None], desc, 0)
+    else:
+        desc = jnp.zeros((x.shape[0], 64), _F32)
+    return keypoints, desc, valid
