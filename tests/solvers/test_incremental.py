@@ -290,11 +290,11 @@ def test_marginal_covariances_match_gtsam() -> None:
     est = solver.estimate()
     gt_graph, _ = to_gtsam(fed, est)
     marg = gtsam.Marginals(gt_graph, values_to_gtsam(est))
-    ids = graph.vertex_ids[[0, len(graph.vertex_ids) // 2, -1]]
+    ids = graph.vertex_ids
     ours = solver.marginal_covariance(Pose3Var(ids))
     for k, i in enumerate(ids):
         ref = marg.marginalCovariance(int(i))
-        np.testing.assert_allclose(ours[k], ref, rtol=1e-6, atol=1e-8 * np.abs(ref).max())
+        np.testing.assert_allclose(ours[k], ref, rtol=0, atol=1e-8 * np.abs(ref).max())
 
 
 def test_growth_within_a_bucket_does_not_recompile() -> None:
