@@ -203,6 +203,7 @@ class _Group:
                         sel_q.append(self.col0[b] + q)
         self.sel_p = np.asarray(sel_p, np.int64)
         self.sel_q = np.asarray(sel_q, np.int64)
+        self.G = np.zeros((cap, self.T, self.T))  # J^T J per constraint (cached: no delta in it)
 
     def _grow(self, need: int) -> None:
         cap = len(self.alive)
@@ -217,6 +218,7 @@ class _Group:
 
         self.buffers = [None if b is None else g(b) for b in self.buffers]
         self.rows, self.alive, self.J, self.r = g(self.rows), g(self.alive), g(self.J), g(self.r)
+        self.G = g(self.G)
         self.newest = g(self.newest)
 
     def add(self, f: Factor, rows: np.ndarray, newest: np.ndarray) -> np.ndarray:
@@ -369,6 +371,7 @@ class IncrementalSolver:
         self.updates = 0
         self._since_full = 0
         self.full_solves = 0
+        self.block_assembly = True  # block (BSR) assembly of large windows when all tangents match
         self._store_list: list[_Store] = []
 
     # --- variables and factors -------------------------------------------------------------
@@ -456,7 +459,9 @@ class IncrementalSolver:
         idx = idx[g.alive[idx]]
         if idx.size == 0:
             return
-        g.J[idx], g.r[idx], _ = self._linearize_rows(g, idx, "lin")
+        J, g.r[idx], _ = self._linearize_rows(g, idx, "lin")
+        g.J[idx] = J
+        g.G[idx] = self._gram(J, g.r[idx])[0]
 
     def _set_estimate(self, s: _Store, rows: np.ndarray) -> None:
         fast = _np_retract(s.t, s.x_lin[rows], s.delta[rows])
@@ -497,6 +502,7 @@ class IncrementalSolver:
             g.alive[idx] = False
             g.J[idx] = 0.0
             g.r[idx] = 0.0
+            g.G[idx] = 0.0
             for k, s in enumerate(g.slots):
                 affected.setdefault(s, set()).update(g.rows[idx, k].tolist())
         for gi, c in new_refs:
@@ -627,6 +633,11 @@ class IncrementalSolver:
             for r in rows:
                 for gi, c in self._adj.get((si, r), ()):
                     extra_fac.setdefault(gi, set()).add(c)
+        tds = {s.td for s in self._store_list if s.n}
+        # One tangent size (pose graphs): assemble 6x6 (3x3) blocks, not scalar entries.
+        blockwise = n > _DENSE_MAX and len(tds) == 1 and self.block_assembly
+        bt = next(iter(tds)) if blockwise else 1
+        nb = n // bt
         rows_l, cols_l, data_l = [], [], []
         grad = np.zeros(n)
         for gi, g in enumerate(self._group_list):
@@ -640,35 +651,57 @@ class IncrementalSolver:
                 continue
             J = g.J[idx]
             e = g.r[idx] + np.einsum("mrt,mt->mr", J, self._stacked_delta(g, idx))
-            col = np.concatenate(
-                [wmap[si][g.rows[idx, k]][:, None] + np.arange(g.tds[k]) for k, si in enumerate(g.slots)], axis=1
-            )
-            for k, si in enumerate(g.slots):
-                held = wmap[si][g.rows[idx, k]] < 0
-                col[held, g.col0[k] : g.col0[k + 1]] = -1
-            G, gv = self._gram(J, e)
+            base = np.stack([wmap[si][g.rows[idx, k]] for k, si in enumerate(g.slots)], axis=1)  # (m, k)
+            col = np.concatenate([base[:, k : k + 1] + np.arange(g.tds[k]) for k in range(len(g.slots))], axis=1)
+            for k in range(len(g.slots)):
+                col[base[:, k] < 0, g.col0[k] : g.col0[k + 1]] = -1
+            gv = np.einsum("mra,mr->ma", J, e)
+            kg = col >= 0
+            grad += np.bincount(col[kg], weights=gv[kg], minlength=n)
+            G = g.G[idx]
+            if blockwise:
+                for a in range(len(g.slots)):
+                    for b in range(len(g.slots)):
+                        ok = (base[:, a] >= 0) & (base[:, b] >= 0)
+                        rows_l.append(base[ok, a] // bt * nb + base[ok, b] // bt)
+                        data_l.append(G[ok][:, g.col0[a] : g.col0[a + 1], g.col0[b] : g.col0[b + 1]])
+                continue
             gp, gq = col[:, g.sel_p], col[:, g.sel_q]
             keep = (gp >= 0) & (gq >= 0)
             rows_l.append(np.maximum(gp, gq)[keep])
             cols_l.append(np.minimum(gp, gq)[keep])
             data_l.append(G[:, g.sel_p, g.sel_q][keep])
-            kg = col >= 0
-            grad += np.bincount(col[kg], weights=gv[kg], minlength=n)
-        rr = np.concatenate([*rows_l, np.arange(n)])
-        cc = np.concatenate([*cols_l, np.arange(n)])
-        dd = np.concatenate([*data_l, np.zeros(n)])
-        if n <= _DENSE_MAX:  # a few variables: dense Cholesky, no sparse bookkeeping
-            Hd = np.bincount(rr * n + cc, weights=dd, minlength=n * n).reshape(n, n)
-            Hd += np.tril(Hd, -1).T
-            dz = np.diag(Hd) == 0.0
-            Hd[dz, dz] = 1.0  # variables without factors stay put
-            step = self._dense_solve(Hd, -grad)
-        else:
-            H = sp.csc_matrix((dd, (rr, cc)), shape=(n, n))
+        if blockwise:
+            keys = np.concatenate(rows_l)
+            blocks = np.concatenate(data_l)
+            order = np.argsort(keys, kind="stable")
+            uniq, start = np.unique(keys[order], return_index=True)
+            data = np.add.reduceat(blocks[order], start, axis=0)
+            brow = uniq // nb
+            indptr = np.searchsorted(brow, np.arange(nb + 1)).astype(np.int32)
+            H = sp.bsr_matrix((data, (uniq % nb).astype(np.int32), indptr), shape=(n, n)).tocsc()
+            if self._method != "cholmod":  # the other paths take the lower triangle only
+                H = sp.tril(H, format="csc")
             diag = H.diagonal()
-            if np.any(diag == 0.0):  # variables without factors stay put
+            if np.any(diag == 0.0):
                 H = H + sp.diags((diag == 0.0).astype(float), format="csc")
             step = self._solve(H, -grad)
+        else:
+            rr = np.concatenate([*rows_l, np.arange(n)])
+            cc = np.concatenate([*cols_l, np.arange(n)])
+            dd = np.concatenate([*data_l, np.zeros(n)])
+            if n <= _DENSE_MAX:  # a few variables: dense Cholesky, no sparse bookkeeping
+                Hd = np.bincount(rr * n + cc, weights=dd, minlength=n * n).reshape(n, n)
+                Hd += np.tril(Hd, -1).T
+                dz = np.diag(Hd) == 0.0
+                Hd[dz, dz] = 1.0  # variables without factors stay put
+                step = self._dense_solve(Hd, -grad)
+            else:
+                H = sp.csc_matrix((dd, (rr, cc)), shape=(n, n))
+                diag = H.diagonal()
+                if np.any(diag == 0.0):  # variables without factors stay put
+                    H = H + sp.diags((diag == 0.0).astype(float), format="csc")
+                step = self._solve(H, -grad)
         for s, w in zip(self._store_list, wmap):
             rows = np.nonzero(w >= 0)[0]
             if rows.size == 0:
@@ -896,6 +929,7 @@ class IncrementalSolver:
             g.alive[idx] = False
             g.J[idx] = 0.0
             g.r[idx] = 0.0
+            g.G[idx] = 0.0
         for h, (gi, idx) in list(self._handles.items()):
             if not np.any(self._group_list[gi].alive[idx]):
                 del self._handles[h]
