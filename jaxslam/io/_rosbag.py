@@ -140,6 +140,8 @@ _READ_ERRORS = (
     OverflowError,
     AssertionError,  # rosbags asserts on some inconsistent records
     MemoryError,  # a corrupt length field asking for an impossible allocation
+    TypeError,  # a truncated connection header (ord('') in rosbags' header parser)
+    SyntaxError,  # a corrupt message definition: rosbags compiles definitions into code
 )
 """What rosbags raises on a corrupt file (found by benchmarks/fuzz.py): turned into
 InputFormatError at open, a counted skip per message, or a warning ending the iteration."""
