@@ -28,6 +28,7 @@ __all__ = [
     "write_kitti",
     "write_tum",
 ]
+from ._kitti import KittiRecording
 from ._recording import (
     EurocRecording,
     Recording,
@@ -55,6 +56,7 @@ __all__ += [
     "LIVOX_CUSTOM_MSG",
     "LIVOX_CUSTOM_POINT",
     "EurocRecording",
+    "KittiRecording",
     "Recording",
     "RosbagRecording",
     "StreamInfo",

@@ -205,7 +205,8 @@ class RosbagWriter(RecordingWriter):
             arr["ring"] = scan.ring
         codes = {"<f4": 7, "<f8": 8, "<u4": 6, "<u2": 4}
         F = self.T["sensor_msgs/msg/PointField"]
-        fields = [F(name=n, offset=arr.dtype.fields[n][1], datatype=codes[f], count=1) for n, f in zip(names, fmts)]
+        layout: dict[str, Any] = dict(arr.dtype.fields or {})
+        fields = [F(name=n, offset=layout[n][1], datatype=codes[f], count=1) for n, f in zip(names, fmts)]
         return self.T["sensor_msgs/msg/PointCloud2"](
             header=self._header(topic, ns, "lidar"),
             height=1,
@@ -373,7 +374,7 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         if len(body) < count * dt.itemsize:
             raise InputFormatError(f"PLY body holds {len(body) // dt.itemsize} of {count} vertices", path)
         arr = np.frombuffer(body, dtype=dt, count=count)
-        cols = {n: arr[n].astype(np.float64) for n in dt.names}
+        cols = {n: arr[n].astype(np.float64) for n in dt.names or ()}
     elif fmt == "ascii":
         vals = np.loadtxt(io.StringIO(body.decode("ascii")), ndmin=2).reshape(-1, len(props))
         cols = {n: vals[:, i] for i, (_, n) in enumerate(props)}
@@ -444,8 +445,8 @@ def read_pcd(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         arr = np.frombuffer(body, dtype=dt, count=n)
         cols = {f: arr[f].astype(np.float64) for f in fields}
     elif mode == "ascii":
-        vals = np.loadtxt(io.StringIO(data[pos:].decode("ascii")), ndmin=2).reshape(-1, len(fields))
-        cols = {f: vals[:, i] for i, f in enumerate(fields)}
+        table = np.loadtxt(io.StringIO(data[pos:].decode("ascii")), ndmin=2).reshape(-1, len(fields))
+        cols = {f: table[:, i] for i, f in enumerate(fields)}
     else:
         raise InputFormatError(f"unsupported PCD DATA {mode!r} (binary or ascii)", path)
     return np.stack([cols["x"], cols["y"], cols["z"]], axis=1), cols.get("intensity")

@@ -117,7 +117,7 @@ class CameraSimulator:
         self._ii, self._jj = (
             a.astype(np.float32) for a in np.meshgrid(np.arange(config.height), np.arange(config.width), indexing="ij")
         )
-        self.exposure_gain = None  # exposure * gain, the auto-exposure state
+        self.exposure_gain: float | None = None  # exposure * gain, the auto-exposure state
         self.t_bc = np.asarray(config.translation, dtype=np.float64)
 
     def pose(self, R_wb: np.ndarray, p_wb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -175,7 +175,9 @@ class CameraSimulator:
         if self.exposure_gain is None:
             self.exposure_gain = want
         else:
-            self.exposure_gain = np.exp(cfg.ae_lag * np.log(self.exposure_gain) + (1 - cfg.ae_lag) * np.log(want))
+            self.exposure_gain = float(
+                np.exp(cfg.ae_lag * np.log(self.exposure_gain) + (1 - cfg.ae_lag) * np.log(want))
+            )
         eg = float(np.clip(self.exposure_gain, cfg.min_exposure, cfg.max_exposure * cfg.max_gain))
         self.exposure_gain = eg
         exposure = min(eg, cfg.max_exposure)

@@ -41,8 +41,12 @@ class ImuConfig:
     def __post_init__(self) -> None:
         if not self.rate > 0:
             raise ConfigError("imu rate must be positive")
-        vals = (self.accelerometer_noise_density, self.gyroscope_noise_density)
-        vals += (self.accelerometer_random_walk, self.gyroscope_random_walk)
+        vals = (
+            self.accelerometer_noise_density,
+            self.gyroscope_noise_density,
+            self.accelerometer_random_walk,
+            self.gyroscope_random_walk,
+        )
         if min(vals) < 0 or min(self.accelerometer_bias, self.gyroscope_bias) < 0:
             raise ConfigError("imu noise densities and biases must be >= 0")
 

@@ -76,8 +76,8 @@ def scan_pattern(config: LidarConfig, t_frame: float) -> tuple[np.ndarray, np.nd
         cols = round(360 / 0.2)
         col = np.arange(cols)
         ring = np.arange(16)
-        C, Rg = np.meshgrid(col, ring, indexing="ij")
-        C, Rg = C.reshape(-1)[:: config.decimation], Rg.reshape(-1)[:: config.decimation]
+        grid_c, grid_r = np.meshgrid(col, ring, indexing="ij")
+        C, Rg = grid_c.reshape(-1)[:: config.decimation], grid_r.reshape(-1)[:: config.decimation]
         tau = C / cols * period
         az = -np.pi + 2 * np.pi * C / cols
         el = np.deg2rad(-15.0 + 2.0 * Rg)

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
@@ -218,14 +219,14 @@ def simulate_tunnel(
                     progress(i + 1, len(cam_ns))
     t_total_sensors = time.perf_counter() - t_start
 
-    gt = Trajectory(rel(gt_ns), SE3(np.asarray(gt_params)))
+    gt = Trajectory(rel(gt_ns), SE3(jnp.asarray(np.asarray(gt_params))))
     write_tum(f"{stem}.gt.tum", gt)
     if map_pts:
         write_ply(f"{stem}.map.ply", np.concatenate(map_pts))
     _contact_sheet([thumbs[k] for k in sorted(thumbs)], Path(f"{stem}.contact.png"))
     Path(f"{stem}.frames.csv").write_text("\n".join(frame_rows) + "\n")
     steps = np.linalg.norm(np.diff(gt_state["p"], axis=0), axis=1)
-    lux = np.array([f["lux"] for f in frame_info])
+    frame_lux = np.array([f["lux"] for f in frame_info])
     means = np.array([f["mean"] for f in frame_info])
     summary = {
         "output": str(out),
@@ -250,9 +251,9 @@ def simulate_tunnel(
         },
         "images": {
             "mean_intensity": float(means.mean()) if len(means) else 0.0,
-            "frames_below_30_lux": int((lux < 30).sum()),
+            "frames_below_30_lux": int((frame_lux < 30).sum()),
             "frames_plain": int(sum(f["region"] == "plain" for f in frame_info)),
-            "lux_median": float(np.median(lux)) if len(lux) else 0.0,
+            "lux_median": float(np.median(frame_lux)) if len(frame_lux) else 0.0,
         },
         "seconds": {
             "world": round(t_world, 2),

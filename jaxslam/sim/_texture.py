@@ -20,7 +20,7 @@ from scipy import ndimage
 from ..errors import ConfigError
 from ._tunnel import WALL_CEIL, WALL_FLOOR, WALL_LEFT, WALL_RIGHT, Tunnel
 
-LIGHTING = {
+LIGHTING: dict[str, tuple[float, float, float, float, float]] = {
     # spacing m, candela, dead-lamp fraction, intensity spread, entrance daylight lux
     "normal": (5.0, 1500.0, 0.0, 0.1, 3000.0),
     "uneven": (7.0, 900.0, 0.25, 0.35, 2000.0),
@@ -196,7 +196,7 @@ class SurfaceAtlas:
         X = tun.to_world(S, U, V)
         ns_, nu, nv = tun.normal_uv(W, U, V)
         N = tun.frame_to_world(tun.k * S, ns_, nu, nv)
-        E = np.full(S.shape, self.lighting.ambient)
+        E: np.ndarray = np.full(S.shape, self.lighting.ambient)
         lamp_xyz = self.lamp_positions()
         for (_, inten, on), lp in zip(self.lamps, lamp_xyz):
             if not on:

@@ -503,13 +503,13 @@ class IncrementalSolver:
             g.J[idx] = 0.0
             g.r[idx] = 0.0
             g.G[idx] = 0.0
-            for k, s in enumerate(g.slots):
-                affected.setdefault(s, set()).update(g.rows[idx, k].tolist())
+            for k, si in enumerate(g.slots):
+                affected.setdefault(si, set()).update(g.rows[idx, k].tolist())
         for gi, c in new_refs:
             dirty.setdefault(gi, []).append(c)
             g = self._group_list[gi]
-            for k, s in enumerate(g.slots):
-                affected.setdefault(s, set()).add(int(g.rows[c, k]))
+            for k, si in enumerate(g.slots):
+                affected.setdefault(si, set()).add(int(g.rows[c, k]))
         # fluid relinearisation
         nrelin = 0
         for s in self._store_list:
@@ -578,7 +578,7 @@ class IncrementalSolver:
                     if i in new:
                         continue
                     r = None if s is None else s.row_of.get(i)
-                    if r is None:
+                    if s is None or r is None:
                         raise GraphError(
                             f"{type(f).__name__} (factor {k}) refers to {vt.__name__} {i}, which has no value"
                         )
@@ -629,8 +629,8 @@ class IncrementalSolver:
         if n == 0:
             return
         extra_fac: dict[int, set[int]] = {}
-        for si, rows in extra.items():
-            for r in rows:
+        for si, ex_rows in extra.items():
+            for r in ex_rows:
                 for gi, c in self._adj.get((si, r), ()):
                     extra_fac.setdefault(gi, set()).add(c)
         tds = {s.td for s in self._store_list if s.n}
@@ -949,7 +949,6 @@ class IncrementalSolver:
             x0 = tuple(self._store_list[si].x[r] for si, r in sep)
             mf = MarginalFactor.from_information(variables, x0, Hp, bp)
             self._add_factor(mf, 0)
-            key = (type(mf), mf.variable_types(), mf.residual_dim, jax.tree_util.tree_structure(mf))
-            g = self.groups[key]
+            g = self.groups[(type(mf), mf.variable_types(), mf.residual_dim, jax.tree_util.tree_structure(mf))]
             self._relinearize(self._group_list.index(g), np.asarray([g.n - 1]))
         return len(is_victim)

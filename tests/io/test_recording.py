@@ -119,14 +119,14 @@ def test_euroc_missing_camera_lists_available(tmp_path):
 
 
 def test_registry_guesses_and_rejects(tmp_path):
-    assert recording_formats() == ["ros1", "ros2", "euroc"]
+    assert recording_formats() == ["ros1", "ros2", "euroc", "kitti"]
     (tmp_path / "notes.txt").write_text("hello")
     with pytest.raises(InputFormatError, match=r"notes.txt: not a known recording; formats: ros1"):
         open_recording(tmp_path / "notes.txt")
     with pytest.raises(InputFormatError, match="no such file"):
         open_recording(tmp_path / "missing.bag")
-    with pytest.raises(InputFormatError, match="unknown recording format 'kitti'"):
-        open_recording(tmp_path, fmt="kitti")
+    with pytest.raises(InputFormatError, match="unknown recording format 'tum'"):
+        open_recording(tmp_path, fmt="tum")
     with pytest.raises(InputFormatError, match="formats: ros1"):
         open_recording(tmp_path)  # an empty folder
 
