@@ -351,7 +351,13 @@ def _pump(name: str, gen: Any, q: queue.Queue, stop: threading.Event) -> None:
     """Run a source's record generator in a thread, putting ``(name, record, t_recv)``."""
     try:
         for rec in gen:
-            q.put((name, rec, time.time()))
+            while True:  # never block forever on a full queue once the recorder stops
+                try:
+                    q.put((name, rec, time.time()), timeout=0.2)
+                    break
+                except queue.Full:
+                    if stop.is_set():
+                        return
             if stop.is_set():
                 break
     except JaxSlamError as exc:
@@ -389,8 +395,9 @@ def record(args: argparse.Namespace) -> dict[str, int]:
             closer.close()
         raise
     q: queue.Queue = queue.Queue(maxsize=10000)
-    for name, gen, _ in sources:
-        threading.Thread(target=_pump, args=(name, gen, q, stop), daemon=True, name=name).start()
+    threads = [threading.Thread(target=_pump, args=(n, gen, q, stop), daemon=True, name=n) for n, gen, _ in sources]
+    for th in threads:
+        th.start()
 
     def on_signal(signum: int, _frame: Any) -> None:
         stop.set()
@@ -421,6 +428,10 @@ def record(args: argparse.Namespace) -> dict[str, int]:
     finally:
         stop.set()
         bag.close()
+        # Let the source threads leave their C calls (OpenCV, sockets) before the
+        # interpreter exits: a daemon thread killed inside OpenCV aborts the process.
+        for th in threads:
+            th.join(timeout=2.0)
         for _, _, closer in sources:
             with contextlib.suppress(Exception):
                 closer.close()
