@@ -78,9 +78,6 @@ class IncrementalConfig:
     """A factor reaching further back than ``window`` updates whose whitened chi^2 per
     residual dimension (at the current estimate) exceeds this widens the window over the
     whole loop (back to its oldest variable, minus ``loop_margin`` updates)."""
-    short_loop: int = 0
-    """Loops reaching back at most this many updates always widen the window over the loop
-    (a cheap solve), whatever their residual."""
     loop_margin: int = 0
     full_solve_every: int = 10
     """Solve the whole linear system at least every this many updates (between full solves
@@ -597,9 +594,6 @@ class IncrementalSolver:
             born = min(int(self._store_list[s].born[g.rows[c, k]]) for k, s in enumerate(g.slots))
             if self.updates - born < cfg.window:
                 continue
-            if self.updates - born <= cfg.short_loop:
-                oldest = born if oldest is None else min(oldest, born)
-                continue
             e = g.r[c] + g.J[c] @ self._stacked_delta(g, np.asarray([c]))[0]
             if float(e @ e) > cfg.loop_chi2 * g.rdim:
                 oldest = born if oldest is None else min(oldest, born)
@@ -735,23 +729,17 @@ class IncrementalSolver:
         m[~live] = -1
         return m, n
 
-    def _assemble(self, at_estimate: bool = False) -> tuple[sp.csc_matrix, np.ndarray, float, np.ndarray, int]:
-        """Lower-triangular H, b (and the cost when ``at_estimate``) of the live system.
-        ``at_estimate``: linearise every factor at the current estimate (not the cache)."""
+    def _information_at_estimate(self) -> tuple[sp.csc_matrix, np.ndarray, int]:
+        """Lower-triangular Gauss-Newton information of the live system, every factor
+        linearised at the current estimate (not the cache); with the dof map and size."""
         dmap, n = self._dof_map()
         rows_l, cols_l, data_l = [], [], []
-        b = np.zeros(n)
-        cost = 0.0
         for g in self._group_list:
             idx = np.nonzero(g.alive[: g.n])[0]
             if idx.size == 0:
                 continue
-            if at_estimate:
-                J, r, c = self._linearize_rows(g, idx, "x", want_cost=True)
-                cost += c
-            else:
-                J, r = g.J[idx], g.r[idx]
-            G, gv = self._gram(J, r)
+            J, r, _ = self._linearize_rows(g, idx, "x")
+            G = self._gram(J, r)[0]
             cols = np.concatenate(
                 [self._store_list[s].dof[g.rows[idx, k]][:, None] + np.arange(g.tds[k]) for k, s in enumerate(g.slots)],
                 axis=1,
@@ -761,7 +749,6 @@ class IncrementalSolver:
             rows_l.append(np.maximum(gp, gq).ravel())
             cols_l.append(np.minimum(gp, gq).ravel())
             data_l.append(G[:, g.sel_p, g.sel_q].ravel())
-            np.add.at(b, cols.ravel(), gv.ravel())
         rr = np.concatenate([*rows_l, np.arange(n)])
         cc = np.concatenate([*cols_l, np.arange(n)])
         dd = np.concatenate([*data_l, np.zeros(n)])
@@ -769,7 +756,7 @@ class IncrementalSolver:
         diag = H.diagonal()
         if np.any(diag == 0.0):  # variables without factors stay put
             H = H + sp.diags((diag == 0.0).astype(float), format="csc")
-        return H, b, cost, dmap, n
+        return H, dmap, n
 
     @staticmethod
     def _dense_solve(H: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -864,7 +851,7 @@ class IncrementalSolver:
         rows = s.rows(np.asarray(var.ids).reshape(-1), "marginal_covariance")
         if not np.all(s.live[rows]):
             raise GraphError(f"{type(var).__name__}: marginalised variables have no covariance here")
-        H, _, _, dmap, n = self._assemble(at_estimate=True)
+        H, dmap, n = self._information_at_estimate()
         cols = dmap[s.dof[rows][:, None] + np.arange(s.td)]  # (K, t)
         E = np.zeros((n, cols.size))
         E[cols.ravel(), np.arange(cols.size)] = 1.0
