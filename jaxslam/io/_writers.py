@@ -327,22 +327,32 @@ def _map_arrays(points: Any, intensity: Any) -> tuple[np.ndarray, np.ndarray | N
     return pts, inten
 
 
-def write_ply(path: str | Path, points: Any, intensity: Any = None, binary: bool = True) -> None:
-    """A PLY point map: float64 ``x y z`` (+ float32 ``intensity``), binary little-endian or ASCII."""
+def write_ply(path: str | Path, points: Any, intensity: Any = None, binary: bool = True, colors: Any = None) -> None:
+    """A PLY point map: float64 ``x y z`` (+ float32 ``intensity``) (+ uchar ``red green blue``
+    from ``colors`` (N, 3) uint8), binary little-endian or ASCII."""
     pts, inten = _map_arrays(points, intensity)
+    rgb = None if colors is None else np.asarray(colors)
+    if rgb is not None and (rgb.shape != (len(pts), 3)):
+        raise ValueError(f"colors must have shape ({len(pts)}, 3), got {rgb.shape}")
     props = ["property double x", "property double y", "property double z"]
     if inten is not None:
         props.append("property float intensity")
+    if rgb is not None:
+        rgb = np.clip(rgb, 0, 255).astype(np.uint8)
+        props += ["property uchar red", "property uchar green", "property uchar blue"]
     fmt = "binary_little_endian" if binary else "ascii"
     header = "\n".join(["ply", f"format {fmt} 1.0", f"element vertex {len(pts)}", *props, "end_header"]) + "\n"
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
         if binary:
             dt = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")] + ([("intensity", "<f4")] if inten is not None else [])
+            dt += [("red", "u1"), ("green", "u1"), ("blue", "u1")] if rgb is not None else []
             arr = np.zeros(len(pts), dtype=dt)
             arr["x"], arr["y"], arr["z"] = pts.T
             if inten is not None:
                 arr["intensity"] = inten
+            if rgb is not None:
+                arr["red"], arr["green"], arr["blue"] = rgb.T
             f.write(arr.tobytes())
         else:
             buf = io.StringIO()
@@ -350,6 +360,7 @@ def write_ply(path: str | Path, points: Any, intensity: Any = None, binary: bool
                 row = [repr(float(v)) for v in pts[k]] + (
                     [repr(float(np.float32(inten[k])))] if inten is not None else []
                 )
+                row += [str(int(c)) for c in rgb[k]] if rgb is not None else []
                 buf.write(" ".join(row) + "\n")
             f.write(buf.getvalue().encode("ascii"))
 

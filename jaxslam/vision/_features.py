@@ -125,7 +125,7 @@ def detect_and_describe(
     if detector == "surf":
         kp, desc, valid = surf(gray, float(hessian_threshold), max_keypoints=max_keypoints, upright=upright)
         n = int(np.sum(np.asarray(valid)))
-        return np.asarray(kp[:n], np.float64), np.asarray(desc[:n])
+        return np.asarray(kp, np.float64)[:n], np.asarray(desc)[:n]  # numpy slices: no compile per n
     import cv2
 
     dim, dtype = (128, np.dtype(np.float32)) if detector == "sift" else (32, np.dtype(np.uint8))
