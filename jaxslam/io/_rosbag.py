@@ -158,7 +158,8 @@ def _describe(err: BaseException) -> str:
 
 
 def _unindexed_ros1(path: Path) -> bool:
-    """Whether a file is a ROS1 v2.0 bag whose header says ``index_pos=0`` (never closed)."""
+    """Whether a file is a ROS1 v2.0 bag without a usable index: its header says
+    ``index_pos=0`` (never closed) or points past the end of the file (truncated)."""
     try:
         with open(path, "rb") as f:
             head = f.read(4096)
@@ -168,7 +169,13 @@ def _unindexed_ros1(path: Path) -> bool:
     i = head.find(key)
     if not head.startswith(b"#ROSBAG V2.0\n") or i < 0 or len(head) < i + len(key) + 8:
         return False
-    return int.from_bytes(head[i + len(key) : i + len(key) + 8], "little") == 0
+    index_pos = int.from_bytes(head[i + len(key) : i + len(key) + 8], "little")
+    if index_pos == 0:
+        return True
+    try:  # an index position past the end of the file: cut short (power loss) after closing began
+        return index_pos >= path.stat().st_size
+    except OSError:
+        return False
 
 
 def livox_types() -> dict[str, Any]:

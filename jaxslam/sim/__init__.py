@@ -2,6 +2,16 @@
 
 from .. import _config  # noqa: F401
 from ._camera import CameraConfig, CameraSimulator
+from ._faults import (
+    CameraDark,
+    NanSamples,
+    SensorDropout,
+    TimeJump,
+    Truncate,
+    inject_faults,
+    truncate_file,
+    write_faulty,
+)
 from ._imu import ImuConfig, synthesize_imu
 from ._lidar import LidarConfig, LidarSimulator, scan_pattern
 from ._posegraph import SyntheticPoseGraph, tunnel_pose_graph
@@ -29,4 +39,14 @@ __all__ += [
     "scan_pattern",
     "simulate_tunnel",
     "synthesize_imu",
+]
+__all__ += [
+    "CameraDark",
+    "NanSamples",
+    "SensorDropout",
+    "TimeJump",
+    "Truncate",
+    "inject_faults",
+    "truncate_file",
+    "write_faulty",
 ]
