@@ -284,8 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     o.set_defaults(func=cmd_optimize)
 
-    d = sub.add_parser("demo", help="simulate a tunnel pose graph with loop closures, optimise it, plot it")
-    d.add_argument("-o", "--output", default="runs/demo", help="results folder (default runs/demo)")
+    d = sub.add_parser("demo-graph", help="a synthetic tunnel pose graph with loop closures, optimised and plotted")
+    d.add_argument("-o", "--output", default="runs/demo-graph", help="results folder (default runs/demo-graph)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--length", type=float, default=60.0, help="path length in metres (out and back)")
     d.set_defaults(func=cmd_demo)
@@ -302,6 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
     __import__("jaxslam.sim._cli", fromlist=["register"]).register(sub)
     __import__("jaxslam.vision._features_cli", fromlist=["register"]).register(sub)
     __import__("jaxslam.vision._vo_cli", fromlist=["register"]).register(sub)
+    __import__("jaxslam.eval._cli", fromlist=["register"]).register(sub)
+    __import__("jaxslam.pipeline._cli", fromlist=["register"]).register(sub)
     return p
 
 

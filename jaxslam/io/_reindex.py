@@ -101,7 +101,7 @@ def reindex(src: str | Path, dst: str | Path | None = None) -> dict[str, int]:
     """
     src = Path(src)
     in_place = dst is None
-    out = src.with_name(src.stem + ".reindex-tmp.bag") if in_place else Path(dst)
+    out = src.with_name(src.stem + ".reindex-tmp.bag") if dst is None else Path(dst)
     if out.exists():
         raise ConfigError(f"{out} exists; not overwriting")
     stats: Counter[str] = Counter(connections=0, messages=0, chunks=0)

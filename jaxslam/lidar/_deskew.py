@@ -24,11 +24,10 @@ Then ``p_ref = F_T_sensor(reference_time)^-1 F_T_sensor(t_i) p_i``.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InputFormatError
 from ._preprocess import check_points
-from ._se3 import se3_exp
+from ._se3 import se3_exp, so3_exp, so3_log
 
 Motion = tuple[np.ndarray, np.ndarray, np.ndarray] | np.ndarray
 
@@ -77,8 +76,13 @@ def _sampled(motion, times: np.ndarray, tolerance: float) -> tuple[np.ndarray, n
     tc = np.clip(times, tk[0], tk[-1])
     if K == 1:
         return np.broadcast_to(Rs[0], (len(tc), 3, 3)), np.broadcast_to(ts[0], (len(tc), 3))
-    R = Slerp(tk, Rotation.from_matrix(Rs))(tc).as_matrix()
-    t = np.stack([np.interp(tc, tk, ts[:, i]) for i in range(3)], axis=-1)
+    # slerp per point: R_k Exp(f w_k), w_k = Log(R_k^T R_k+1), vectorised (scipy's Slerp costs
+    # ~7 ms per 11k-point scan, this ~1 ms)
+    k = np.clip(np.searchsorted(tk, tc, side="right") - 1, 0, K - 2)
+    f = (tc - tk[k]) / (tk[k + 1] - tk[k])
+    w = so3_log(np.einsum("kji,kjl->kil", Rs[:-1], Rs[1:]))
+    R = Rs[k] @ so3_exp(f[:, None] * w[k])
+    t = ts[k] + f[:, None] * (ts[k + 1] - ts[k])
     return R, t
 
 

@@ -138,8 +138,9 @@ def inverse(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _v_matrix(w: np.ndarray) -> np.ndarray:
-    """The left Jacobian of SO(3) (``V`` of SE(3)'s exp) (…, 3, 3)."""
+def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """The left Jacobian of SO(3) (``V`` of SE(3)'s exp: ``Exp([w, rho])`` has translation
+    ``V rho``) (…, 3, 3)."""
     th2 = np.sum(w * w, axis=-1)[..., None, None]
     th = np.sqrt(th2)
     small = th2 < 1e-4  # below 0.01 rad the closed forms cancel; the series is exact to ~1e-17
@@ -155,7 +156,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     xi = np.asarray(xi, np.float64)
     T = np.zeros((*xi.shape[:-1], 4, 4))
     T[..., :3, :3] = so3_exp(xi[..., :3])
-    T[..., :3, 3] = np.einsum("...ij,...j->...i", _v_matrix(xi[..., :3]), xi[..., 3:])
+    T[..., :3, 3] = np.einsum("...ij,...j->...i", so3_left_jacobian(xi[..., :3]), xi[..., 3:])
     T[..., 3, 3] = 1.0
     return T
 
@@ -164,7 +165,7 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     """Tangents (…, 6) ``[rotation, translation]`` of 4x4 transforms (…, 4, 4)."""
     T = np.asarray(T, np.float64)
     w = so3_log(T[..., :3, :3])
-    u = np.linalg.solve(_v_matrix(w), T[..., :3, 3][..., None])[..., 0]
+    u = np.linalg.solve(so3_left_jacobian(w), T[..., :3, 3][..., None])[..., 0]
     return np.concatenate([w, u], axis=-1)
 
 
@@ -177,6 +178,24 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     A[..., 3:, 3:] = R
     A[..., 3:, :3] = skew(p) @ R
     return A
+
+
+def make_poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Poses (…, 4, 4) from rotations (…, 3, 3) and translations (…, 3)."""
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    T = np.zeros((*R.shape[:-2], 4, 4))
+    T[..., :3, :3], T[..., :3, 3], T[..., 3, 3] = R, t, 1.0
+    return T
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """``T`` (4, 4) with its rotation block projected onto SO(3) (nearest in Frobenius norm):
+    chained products of poses gather rounding error."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

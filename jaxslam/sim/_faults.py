@@ -238,9 +238,15 @@ def inject_faults(records: Iterable[Measurement], faults: Iterable[Fault], seed:
                 and _in(rel, f.start, f.duration)
             ):
                 out = _dark(out, f, np.random.default_rng([seed, j, i]))
-            elif isinstance(f, NanSamples) and rec.kind == f.kind and seen[rec.kind] % f.every == 0:
+            elif isinstance(f, NanSamples) and out is not None and rec.kind == f.kind and seen[rec.kind] % f.every == 0:
                 out = _nan(out, f, np.random.default_rng([seed, j, i]))
-            elif isinstance(f, TimeJump) and rec.kind == f.kind and rel >= f.at and jumped[j] < f.count:
+            elif (
+                isinstance(f, TimeJump)
+                and out is not None
+                and rec.kind == f.kind
+                and rel >= f.at
+                and jumped[j] < f.count
+            ):
                 jumped[j] += 1
                 out = dataclasses.replace(out, t=float(out.t) - f.back)
         if out is not None:

@@ -8,7 +8,9 @@ images, LiDAR scans, ground-truth poses of the body (= IMU) frame at ``gt_rate``
 fixes at ``fix_rate``. Beside the recording go ``<name>.summary.json`` (figures and the
 effective config), ``<name>.frames.csv`` (per-frame exposure and lighting labels),
 ``<name>.contact.png`` (a contact sheet of sample frames), ``<name>.gt.tum`` and
-``<name>.map.ply`` (the noise-free LiDAR map, decimated). Deterministic by ``seed``.
+``<name>.map.ply`` (the noise-free LiDAR map, decimated) and ``<name>.rig.yaml`` (the rig's
+calibration: intrinsics, distortion, extrinsics, IMU noise densities — what a calibration
+step would give; ``jaxslam run`` reads it). Deterministic by ``seed``.
 """
 
 from __future__ import annotations
@@ -128,6 +130,36 @@ def _contact_sheet(frames: list[tuple[np.ndarray, str]], path: Path, cols: int =
     sheet.save(path)
 
 
+def rig_calibration(config: SimConfig) -> dict[str, Any]:
+    """The simulated rig's calibration in :class:`jaxslam.pipeline.RigConfig`'s keys."""
+    from ..lie import host
+    from ._camera import R_BODY_CAM
+
+    cam, imu = config.camera, config.imu
+    return {
+        "camera_intrinsics": [float(v) for v in cam.intrinsics()],
+        "camera_distortion": [float(v) for v in cam.distortion],
+        "camera_size": [cam.width, cam.height],
+        "body_T_camera": [float(v) for v in host.matrix_to_quat(R_BODY_CAM)] + [float(v) for v in cam.translation],
+        "body_T_lidar": [1.0, 0.0, 0.0, 0.0] + [float(v) for v in config.lidar.translation],
+        "lidar_model": config.lidar.model,
+        "accelerometer_noise_density": imu.accelerometer_noise_density,
+        "gyroscope_noise_density": imu.gyroscope_noise_density,
+        "accelerometer_random_walk": imu.accelerometer_random_walk,
+        "gyroscope_random_walk": imu.gyroscope_random_walk,
+        "gravity": 9.81,
+    }
+
+
+def write_rig(config: SimConfig, path: str | Path) -> None:
+    import yaml
+
+    Path(path).write_text(
+        "# jaxslam rig calibration (simulated rig)\n"
+        + yaml.safe_dump({"rig": rig_calibration(config)}, sort_keys=False)
+    )
+
+
 def simulate_tunnel(
     config: SimConfig,
     output: str | Path,
@@ -221,6 +253,7 @@ def simulate_tunnel(
 
     gt = Trajectory(rel(gt_ns), SE3(jnp.asarray(np.asarray(gt_params))))
     write_tum(f"{stem}.gt.tum", gt)
+    write_rig(config, f"{stem}.rig.yaml")
     if map_pts:
         write_ply(f"{stem}.map.ply", np.concatenate(map_pts))
     _contact_sheet([thumbs[k] for k in sorted(thumbs)], Path(f"{stem}.contact.png"))

@@ -392,7 +392,7 @@ def find_essential(
         gn_rounds,
         gn_iterations,
     )
-    return EssentialResult(E, R, t, np.asarray(good)[:n], score)  # numpy slice: no compile per n
+    return EssentialResult(E, R, t, np.asarray(good)[:n], score)  # type: ignore[arg-type]  # numpy slice: no compile per n
 
 
 def relative_pose(

@@ -62,7 +62,7 @@ def test_corrupt_graph_names_file_and_line(tmp_path: Path, capsys: pytest.Captur
 
 
 def test_demo_runs_and_writes_results(tmp_path: Path) -> None:
-    assert main(["demo", "-o", str(tmp_path), "--length", "30"]) == 0
+    assert main(["demo-graph", "-o", str(tmp_path), "--length", "30"]) == 0
     for name in ("trajectory_tum.txt", "ground_truth_tum.txt", "metrics.json", "trajectory.png", "graph_optimised.g2o"):
         assert (tmp_path / name).stat().st_size > 0, name
     m = json.loads((tmp_path / "metrics.json").read_text())

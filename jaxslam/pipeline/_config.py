@@ -1,0 +1,312 @@
+"""Configuration of the fused estimator: the rig (calibration) and the pipeline options.
+
+Everything is a frozen dataclass with defaults; :func:`load_config` reads a YAML file whose
+sections mirror the dataclasses (``rig:``, ``keyframe:``, ``imu:``, ``lidar:``, ``vision:``,
+``loop:``, ``solver:``) and rejects unknown keys by name. ``jaxslam run`` writes the effective
+configuration back as ``config.yaml`` so a run can be repeated exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..errors import ConfigError
+
+
+@dataclasses.dataclass(frozen=True)
+class RigConfig:
+    """Calibration of the sensor rig. Body frame = IMU frame (x forward, y left, z up).
+
+    Extrinsics are ``body_T_sensor`` as ``[qw, qx, qy, qz, x, y, z]`` (the sensor's pose in
+    the body frame). IMU noise in Kalibr's units (continuous-time densities)."""
+
+    camera_intrinsics: tuple[float, float, float, float] = (281.6, 281.6, 255.5, 159.5)
+    """``fx, fy, cx, cy`` (px)."""
+    camera_distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)
+    """Radial-tangential ``k1, k2, p1, p2`` (OpenCV / Kalibr ``radtan``)."""
+    camera_size: tuple[int, int] = (512, 320)
+    """Image ``width, height`` (px)."""
+    body_T_camera: tuple[float, ...] = (0.5, -0.5, 0.5, -0.5, 0.2, 0.0, 0.3)
+    """Camera pose in the body frame; camera axes x right, y down, z forward."""
+    body_T_lidar: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 0.25, 0.0, 0.45)
+    lidar_model: str = "hap"
+    accelerometer_noise_density: float = 2.0e-3
+    gyroscope_noise_density: float = 1.7e-4
+    accelerometer_random_walk: float = 3.0e-4
+    gyroscope_random_walk: float = 2.0e-5
+    gravity: float = 9.81
+
+    def K(self) -> np.ndarray:
+        fx, fy, cx, cy = self.camera_intrinsics
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyframeConfig:
+    distance: float = 0.25
+    """New keyframe after this much travel (m) ..."""
+    angle_deg: float = 10.0
+    """... or this much rotation (degrees) ..."""
+    max_interval: float = 1.0
+    """... or this much time (s) since the last one."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ImuConfig:
+    noise_scale: float = 1.0
+    """Multiplies the rig's white-noise densities (a tuning weight)."""
+    still_seconds: float = 1.0
+    """Initialisation window at the start: gravity direction and gyro bias from its mean."""
+    still_acc_std: float = 0.05
+    """The start counts as standing still when the accelerometer's std is below this (m/s^2)."""
+    acc_bias_sigma: float = 0.1
+    """Prior sigma of the accelerometer bias (m/s^2)."""
+    gyro_bias_sigma: float = 0.005
+    """Prior sigma of the gyro bias around the still-start estimate (rad/s)."""
+    gap_seconds: float = 0.1
+    """An IMU gap longer than this inside a keyframe interval is bridged by holding the last
+    sample and counted (``imu_gaps``)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LidarConfig:
+    enabled: bool = True
+    voxel: float = 0.25
+    """Downsampling of each scan before registration (m)."""
+    map_voxel: float = 0.2
+    map_points_per_voxel: int = 10
+    map_radius: float = 40.0
+    pairs: tuple[int, ...] = (1, 5, 20)
+    """Odometry factors to the keyframes this many back (beyond 1: only between scans that
+    are not degenerate, where the scan-to-map odometry does not drift)."""
+    map_every: int = 2
+    """Insert every n-th registered scan into the local map (the map update, a k-d tree
+    rebuild, is the front end's largest cost after ICP)."""
+    max_range: float = 60.0
+    min_range: float = 0.6
+    information_scale: float = 0.1
+    """Multiplies the registration Hessian (points are not independent: the raw Hessian is
+    overconfident). A tuning weight."""
+    min_sigma_rot: float = 0.0005
+    """Floor on the odometry factor's rotation sigma (rad)."""
+    min_sigma_trans: float = 0.003
+    """Floor on the odometry factor's translation sigma (m)."""
+    degenerate_sigma: float = 1.0
+    """Sigma given to a degenerate direction (m or rad): down-weighted, not trusted."""
+
+
+@dataclasses.dataclass(frozen=True)
+class VisionConfig:
+    enabled: bool = True
+    enhance: bool = True
+    """ABA-CLAHE before features (``--no-enhance`` turns it off)."""
+    alpha: float = 0.25
+    beta: float = 0.4
+    clip: float = 2.0
+    detector: str = "surf"
+    hessian_threshold: float = 100.0
+    max_keypoints: int = 1000
+    ransac: bool = True
+    """Essential-matrix RANSAC on the matches (``--no-ransac``: every match is used)."""
+    ratio: float = 0.8
+    ransac_threshold_px: float = 1.0
+    min_inliers: int = 25
+    """A keyframe is registered when at least this many matches with LiDAR depth survive."""
+    pixel_sigma: float = 1.0
+    information_scale: float = 0.5
+    depth_radius_px: float = 12.0
+    """LiDAR points projected within this radius of a feature give it depth (a local plane)."""
+    max_depth: float = 20.0
+    max_time_offset: float = 0.02
+    depth_scale: bool = True
+    """Take the translation's length from the LiDAR depths of both keyframes (3-D to 3-D),
+    its direction and the rotation from the reprojection fit (see ``VisualFrontend``)."""
+    scale_from_lidar: bool = True
+    """Calibrate the visual translation length against LiDAR odometry on keyframe pairs where
+    the LiDAR is not degenerate (ratio of lengths, after 20 pairs, clipped to +-5 %)."""
+    pairs: tuple[int, ...] = (1,)
+    """Relative poses to the keyframes this many back (1 = the previous; more pairs average
+    the per-pair error along the tunnel axis, where LiDAR is blind)."""
+    threaded: bool = True
+    """Run the visual front end in a worker thread (its factors join one or two keyframes
+    later); False: inline and deterministic."""
+    """An image is used for a keyframe when its stamp is within this of the keyframe's (s)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    enabled: bool = True
+    min_gap_s: float = 15.0
+    """Only keyframes at least this much older are loop candidates."""
+    search_radius: float = 3.0
+    """Candidates within this distance of the current estimate (m)."""
+    every: int = 3
+    """Try a loop at every n-th keyframe."""
+    submap_radius: float = 10.0
+    """The candidate's submap: the scans of old keyframes within this distance of it (the
+    forward-looking LiDAR saw the place the current scan sees from other keyframes)."""
+    min_fitness: float = 0.6
+    max_rmse: float = 0.08
+    chi2_gate: float = 22.46
+    """Mahalanobis gate of the loop against the current estimate (chi^2, 6 dof, 0.999)."""
+    drift_per_m: float = 0.01
+    """Odometry drift assumed by the gate (m and rad per m travelled between the two)."""
+    cauchy_scale: float = 1.0
+    """Robust kernel on loop factors (whitened units)."""
+    information_scale: float = 0.01
+    """Multiplies the loop registration's Hessian (chi^2 at ground truth ~6 with it on the
+    simulated tunnel: submaps from two passes are less consistent than one scan-to-map)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    mode: str = "incremental"
+    """``incremental`` (jaxslam's iSAM2-class solver) or ``batch`` (LM every keyframe)."""
+    final_optimize: bool = True
+    """After the last keyframe, relinearise everything and solve to the batch optimum."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    rig: RigConfig = dataclasses.field(default_factory=RigConfig)
+    keyframe: KeyframeConfig = dataclasses.field(default_factory=KeyframeConfig)
+    imu: ImuConfig = dataclasses.field(default_factory=ImuConfig)
+    lidar: LidarConfig = dataclasses.field(default_factory=LidarConfig)
+    vision: VisionConfig = dataclasses.field(default_factory=VisionConfig)
+    loop: LoopConfig = dataclasses.field(default_factory=LoopConfig)
+    solver: SolverOptions = dataclasses.field(default_factory=SolverOptions)
+
+    def to_dict(self) -> dict[str, Any]:
+        return _plain(dataclasses.asdict(self))
+
+    def replace(self, **sections: dict[str, Any]) -> PipelineConfig:
+        """A copy with fields of sections replaced: ``cfg.replace(vision={"enhance": False})``."""
+        out: dict[str, Any] = {}
+        known = {f.name for f in dataclasses.fields(self)}
+        for name, changes in sections.items():
+            if name not in known:
+                raise ConfigError(f"unknown config section {name!r}; expected one of {', '.join(sorted(known))}")
+            cur = getattr(self, name)
+            out[name] = _build(type(cur), {**dataclasses.asdict(cur), **changes}, name)
+        return dataclasses.replace(self, **out)
+
+
+def _plain(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+_CHOICES = {
+    "detector": ("surf", "sift", "orb"),
+    "mode": ("incremental", "batch"),
+    "lidar_model": ("hap", "ring16"),
+}
+
+
+def _build(cls: type, data: dict[str, Any], where: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}; expected some of {', '.join(fields)}")
+    kwargs = {}
+    for k, v in data.items():
+        default = getattr(cls(), k)
+        if isinstance(default, tuple):
+            if not isinstance(v, list | tuple) or (len(v) != len(default) and k != "camera_distortion"):
+                raise ConfigError(f"{where}.{k}: expected a list of {len(default)} numbers, got {v!r}")
+            if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
+                raise ConfigError(f"{where}.{k}: expected numbers, got {v!r}")
+            v = tuple(v)
+        elif isinstance(default, bool):
+            if not isinstance(v, bool):
+                raise ConfigError(f"{where}.{k}: expected true/false, got {v!r}")
+        elif isinstance(default, int):
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise ConfigError(f"{where}.{k}: expected an integer, got {v!r}")
+        elif isinstance(default, float):
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ConfigError(f"{where}.{k}: expected a number, got {v!r}")
+            v = float(v)
+        elif isinstance(default, str):
+            if not isinstance(v, str):
+                raise ConfigError(f"{where}.{k}: expected a string, got {v!r}")
+            allowed = _CHOICES.get(k)
+            if allowed and v not in allowed:
+                raise ConfigError(f"{where}.{k}: expected one of {', '.join(allowed)}, got {v!r}")
+        kwargs[k] = v
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{where}: {e}") from e
+
+
+def config_from_dict(data: dict[str, Any], base: PipelineConfig | None = None, where: str = "config") -> PipelineConfig:
+    """A :class:`PipelineConfig` from nested dicts (unknown sections or keys raise
+    :class:`ConfigError`); missing keys keep ``base``'s values."""
+    base = base or PipelineConfig()
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping of sections, got {type(data).__name__}")
+    sections = {f.name for f in dataclasses.fields(PipelineConfig)}
+    unknown = sorted(set(data) - sections)
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown section(s) {', '.join(unknown)}; expected some of {', '.join(sorted(sections))}"
+        )
+    out = {}
+    for name, values in data.items():
+        if values is None:
+            continue
+        if not isinstance(values, dict):
+            raise ConfigError(f"{where}.{name}: expected a mapping, got {values!r}")
+        cur = getattr(base, name)
+        out[name] = _build(type(cur), {**dataclasses.asdict(cur), **values}, f"{where}.{name}")
+    return dataclasses.replace(base, **out)
+
+
+def load_config(path: str | Path, base: PipelineConfig | None = None) -> PipelineConfig:
+    """Read a YAML config (sections as :class:`PipelineConfig`)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: config file not found")
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML ({e})") from e
+    return config_from_dict(data, base, where=str(p))
+
+
+def save_config(config: PipelineConfig, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
+
+
+def find_rig(recording: str | Path) -> Path | None:
+    """The calibration file beside a recording: ``<stem>.rig.yaml`` or ``rig.yaml`` in its folder."""
+    p = Path(recording)
+    stem = p.parent / (p.stem if p.suffix else p.name)
+    for cand in (Path(f"{stem}.rig.yaml"), p / "rig.yaml" if p.is_dir() else None, p.parent / "rig.yaml"):
+        if cand is not None and cand.is_file():
+            return cand
+    return None
+
+
+def load_rig(path: str | Path) -> RigConfig:
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"{p}: cannot read the rig calibration ({e})") from e
+    if isinstance(data, dict) and "rig" in data:
+        data = data["rig"]
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: expected a mapping of calibration keys")
+    return _build(RigConfig, data, str(p))

@@ -1,0 +1,113 @@
+"""LiDAR odometry for the estimator: deskew with IMU-propagated motion, downsample, register to
+a local voxel map in the odometry frame (scan-to-map, kiss-icp style), and turn the
+registration Hessian into the information of an odometry factor with degenerate directions
+(the tunnel axis) down-weighted."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..lidar import IcpConfig, Registration, VoxelMap, VoxelMapConfig, crop_range, deskew, register, voxel_downsample
+from ..lie import host
+from ._config import LidarConfig
+
+
+@dataclasses.dataclass
+class ScanResult:
+    t: float
+    """Reference time of the deskewed scan (s)."""
+    T_odom: np.ndarray
+    """Body pose in the odometry frame at ``t`` (4x4)."""
+    registration: Registration | None
+    points: np.ndarray
+    """Deskewed, downsampled points in the body frame at ``t`` (N, 3)."""
+    degenerate: bool
+    condition: float
+    index: int = 0
+    """Scan number (0, 1, ...) in the odometry."""
+    last_degenerate: int = -1
+    """Number of the latest scan up to this one whose registration did not observe the
+    direction of travel (weak along body x, or unregistered): the odometry is anchored
+    (drift-free along the axis too) over the scans after it."""
+
+
+def information_for_factor(info_lidar: np.ndarray, T_bl: np.ndarray, cfg: LidarConfig, scale: float) -> np.ndarray:
+    """Registration information (LiDAR tangent) -> body-tangent information for a between
+    factor: conjugated by the extrinsic, scaled, regularised so a direction the scan does not
+    see gets sigma ``cfg.degenerate_sigma``, and capped by the sigma floors. Callers pass
+    ``Registration.strong_information()``: along a degenerate direction ICP held the
+    prediction, which is not a measurement, so the factor says (almost) nothing there."""
+    A = host.adjoint(host.inverse(T_bl))  # xi_lidar = Ad(T_lb) xi_body
+    info = scale * (A.T @ info_lidar @ A)
+    info = 0.5 * (info + info.T) + np.eye(6) / cfg.degenerate_sigma**2
+    cov = np.linalg.inv(info)
+    floor = np.array([cfg.min_sigma_rot] * 3 + [cfg.min_sigma_trans] * 3) ** 2
+    cov = cov + np.diag(floor)
+    out = np.linalg.inv(cov)
+    return 0.5 * (out + out.T)
+
+
+class LidarOdometry:
+    """Scan-to-map odometry (see the module docstring)."""
+
+    def __init__(self, cfg: LidarConfig, T_bl: np.ndarray):
+        self.cfg = cfg
+        self.T_bl = T_bl
+        self.T_lb = host.inverse(T_bl)
+        self.map = VoxelMap(
+            VoxelMapConfig(
+                voxel_size=cfg.map_voxel, max_points_per_voxel=cfg.map_points_per_voxel, max_distance=cfg.map_radius
+            )
+        )
+        self.icp = IcpConfig()
+        self.last: ScanResult | None = None
+        self.degenerate = 0
+        self.processed = 0
+        self._last_degenerate = -1
+
+    def process(
+        self, t_ref: float, points: np.ndarray, point_times: np.ndarray, body_motion, T_odom_pred: np.ndarray
+    ) -> ScanResult:
+        """``body_motion``: (times (K,), poses (K, 4, 4)) of the body in any fixed frame over
+        the scan (IMU-propagated); ``point_times`` absolute (s); ``T_odom_pred`` the predicted
+        body pose at ``t_ref`` in the odometry frame."""
+        cfg = self.cfg
+        times, poses = body_motion
+        lid = poses @ self.T_bl
+        pts = deskew(points, point_times, (lid[:, :3, :3], lid[:, :3, 3], times), reference_time=t_ref, tolerance=0.02)
+        pts = np.asarray(crop_range(pts, cfg.min_range, cfg.max_range))
+        src = np.asarray(voxel_downsample(pts, cfg.voxel))
+        T_init = T_odom_pred @ self.T_bl
+        reg: Registration | None = None
+        if len(self.map) == 0:
+            T_l = T_init
+        else:
+            reg = register(src, self.map, T_init, self.icp)
+            T_l = reg.T if reg.converged else T_init
+        if self.processed % cfg.map_every == 0 or len(self.map) == 0:
+            self.map.add(host.transform_points(T_l, np.asarray(voxel_downsample(pts, cfg.map_voxel))), T_l[:3, 3])
+        T_b = T_l @ self.T_lb
+        deg = bool(reg is not None and reg.degenerate)
+        self.degenerate += int(deg)
+        # the odometry loses its anchoring along the axis (body x, the direction of travel)
+        # when a weak direction has a large x-translation component (a weak pitch + height
+        # combination near a wall does not)
+        axis_weak = reg is None or not reg.converged or any(abs(w[3]) > 0.5 for w in reg.weak_directions)
+        if axis_weak:
+            self._last_degenerate = self.processed
+        self.processed += 1
+        body_pts = host.transform_points(self.T_bl, np.asarray(voxel_downsample(pts, 0.1)))
+        res = ScanResult(
+            t_ref,
+            T_b,
+            reg,
+            body_pts,
+            deg,
+            float(reg.condition_number) if reg is not None else np.nan,
+            self.processed - 1,
+            self._last_degenerate,
+        )
+        self.last = res
+        return res

@@ -1,0 +1,237 @@
+"""``run_recording``: a recording in, a results folder out (the user's main job).
+
+Outputs in ``outdir``: ``trajectory_tum.txt``, ``trajectory_kitti.txt`` (+ ``times.txt``),
+``map.ply`` (deskewed keyframe scans at the optimised poses, grey from the camera where a
+keyframe image sees the point), ``points.ply`` (the sparse visual map), ``metrics.json``, ``config.yaml`` (effective), and plots
+``trajectory.png``, ``errors.png`` (when ground truth exists) and ``residuals.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputFormatError
+from ..io import open_recording, write_kitti, write_ply, write_tum
+from ..io._reindex import reindex
+from ..io._rosbag import _unindexed_ros1
+from ..io._trajectory import Trajectory
+from ..lie import SE3, host
+from ._config import PipelineConfig, find_rig, load_rig, save_config
+from ._estimator import Estimator
+from ._mapping import SparseMap, build_sparse_map
+
+
+def _trajectory(times: np.ndarray, poses: np.ndarray) -> Trajectory:
+    return Trajectory(np.asarray(times, np.float64), SE3(jnp.asarray(host.matrix_to_params(poses))))
+
+
+def mapping_statistics(est: Estimator, poses: np.ndarray) -> tuple[dict[str, Any], SparseMap | None]:
+    """The paper's Table 10 quantities: keyframe images and how many the visual front end
+    registered, and the sparse map of feature tracks triangulated at the final poses and
+    refined by a structure-only bundle adjustment (:mod:`._mapping`)."""
+    with_img = [kf for kf in est.keyframes if kf.features is not None]
+    stats: dict[str, Any] = {
+        "input_images": len(with_img),
+        "registered_images": int(sum(kf.registered for kf in with_img)),
+    }
+    if est.visual is None:
+        return {**stats, "reproj_rmse_px": float("nan")}, None
+    sm = build_sparse_map(est.keyframes, poses, est.visual.T_bc, est.visual.f)
+    return {**stats, **sm.statistics()}, sm
+
+
+def factor_residuals(est: Estimator, poses: np.ndarray) -> dict[str, np.ndarray]:
+    """Whitened residual norms per factor kind at the final poses (for ``residuals.png``)."""
+    out: dict[str, list[float]] = {"lidar odometry": [], "visual odometry": [], "loop closure": []}
+    for kind, i, j, T, info in est.edges:
+        e = host.se3_log(host.inverse(T) @ host.inverse(poses[i]) @ poses[j])
+        out[kind].append(float(np.sqrt(max(e @ info @ e, 0.0))))
+    return {k: np.asarray(v) for k, v in out.items() if v}
+
+
+def false_loops(
+    est: Estimator, gt_poses: np.ndarray | None, trans_tol: float = 0.3, rot_tol_deg: float = 3.0
+) -> int | None:
+    """Accepted loops whose measurement disagrees with ground truth in the directions the loop
+    constrains (the tunnel-axis direction a degenerate loop does not measure is ignored)."""
+    if est.loops is None or gt_poses is None:
+        return None
+    bad = 0
+    for lp in est.loops.accepted:
+        T_gt = host.inverse(gt_poses[lp.i]) @ gt_poses[lp.j]
+        e = host.se3_log(host.inverse(lp.T) @ T_gt)
+        evals, evecs = np.linalg.eigh(lp.information)
+        strong = evecs[:, evals > 1.0 / 0.05**2]  # directions the loop knows to better than 5 cm / rad
+        e_s = strong @ (strong.T @ e)
+        if np.linalg.norm(e_s[3:]) > trans_tol or np.degrees(np.linalg.norm(e_s[:3])) > rot_tol_deg:
+            bad += 1
+    return bad
+
+
+def run_recording(
+    path: str | Path,
+    outdir: str | Path,
+    config: PipelineConfig | None = None,
+    progress: Callable[[float, float], None] | None = None,
+    plots: bool = True,
+    max_seconds: float | None = None,
+) -> dict[str, Any]:
+    """Run the estimator over a recording and write the results folder; returns the metrics."""
+    from .. import eval as ev
+
+    t_start = time.perf_counter()
+    config = config or PipelineConfig()
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    repaired: dict[str, int] = {}
+    if _unindexed_ros1(Path(path)):  # cut short (power loss): rebuild the index from the chunks
+        fixed = out / (Path(path).stem + ".reindexed.bag")
+        fixed.unlink(missing_ok=True)
+        repaired = reindex(path, fixed)
+        rec = open_recording(fixed)
+    else:
+        rec = open_recording(path)
+    rig_path = find_rig(path)
+    if rig_path is not None and config.rig == PipelineConfig().rig:
+        import dataclasses
+
+        config = dataclasses.replace(config, rig=load_rig(rig_path))
+    save_config(config, out / "config.yaml")
+    streams = rec.streams()
+    t0s = [s.t_start for s in streams if np.isfinite(s.t_start)]
+    t1s = [s.t_end for s in streams if np.isfinite(s.t_end)]
+    if not t0s:
+        raise InputFormatError("the recording holds no readable stream", path)
+    t_begin, t_end = min(t0s), max(t1s)
+    est = Estimator(config)
+    if repaired:
+        dropped = sum(v for k, v in repaired.items() if k not in ("connections", "messages", "chunks"))
+        kept = repaired.get("messages", 0)
+        est.warnings[
+            f"recording: bag without index (truncated?) reindexed: {kept} messages kept, {dropped} dropped"
+        ] += 1
+    n = 0
+    try:
+        for r in rec:
+            if max_seconds is not None and r.t > t_begin + max_seconds:
+                break
+            est.feed(r)
+            n += 1
+            if progress is not None and n % 200 == 0:
+                progress(r.t - t_begin, t_end - t_begin)
+    except InputFormatError as e:  # a truncated / corrupt tail: keep what was read
+        est.warnings[f"recording: read stopped early ({e})"] += 1
+    for k, v in rec.skipped.items():
+        est.warnings[f"recording: {k}"] += v
+    res = est.finish()
+    runtime = time.perf_counter() - t_start
+    if not len(res["times"]):
+        raise InputFormatError("no keyframe could be made (no IMU, or the recording is too short)", path)
+    poses = res["poses"]
+    traj = _trajectory(res["times"], poses)
+    write_tum(out / "trajectory_tum.txt", traj)
+    write_kitti(out / "trajectory_kitti.txt", traj, times_path=out / "times.txt")
+    _write_map(est, poses, out / "map.ply")
+
+    gt = rec.ground_truth()
+    if gt is None and est.ground_truth:
+        gt = Trajectory(
+            np.array([p.t for p in est.ground_truth]), SE3(jnp.asarray(np.stack([p.pose for p in est.ground_truth])))
+        )
+    stats, sparse = mapping_statistics(est, poses)
+    reproj = sparse.residuals_px if sparse is not None else np.zeros(0)
+    if sparse is not None and len(sparse.points):
+        write_ply(out / "points.ply", sparse.points)
+    lidar = est.lidar
+    metrics: dict[str, Any] = {
+        "recording": str(path),
+        "keyframes": len(res["times"]),
+        "registered_frames": stats["registered_images"],
+        "total_frames": stats["input_images"],
+        "reproj_rmse_px": stats["reproj_rmse_px"],
+        "runtime_s": runtime,
+        "sequence_duration_s": float(min(t_end, est.t_last) - t_begin) if est.t_first is not None else 0.0,
+        "degenerate_scans": lidar.degenerate if lidar else 0,
+        "lidar_scans": lidar.processed if lidar else 0,
+        "loops_accepted": len(est.loops.accepted) if est.loops else 0,
+        "loops_rejected": len(est.loops.rejected) if est.loops else 0,
+        "visual_scale": est._vo_scale,
+        "mapping": stats,
+        "timing_s": {k: round(v, 3) for k, v in est.timing.items()},
+        "warnings": dict(est.warnings),
+    }
+    if gt is not None:
+        try:
+            a = ev.ape(gt, traj, align="se3")
+            g_at, e_at = ev.associate(gt, traj)
+            aligned, _ = ev.align(g_at, e_at, "se3")  # the loop error needs the estimate in gt's frame
+            rp = ev.rpe(gt, traj, delta=1.0, unit="m", pose_relation="trans")  # per metre travelled
+            metrics.update(
+                ape_rmse_m=a.stats["rmse"],
+                ape_mean_m=a.stats["mean"],
+                ape_max_m=a.stats["max"],
+                rpe_rmse=rp.stats["rmse"],
+                loop_error_m=ev.loop_error(aligned, g_at, associated=True),
+                loop_error_ratio=ev.loop_error_ratio(aligned, g_at, associated=True),
+                path_length_m=ev.path_length(gt),
+            )
+            gt_T = host.params_to_matrix(np.asarray(g_at.poses.params))  # type: ignore[union-attr]
+            metrics["loops_false"] = false_loops(est, gt_T) if len(gt_T) == len(poses) else None
+            if plots:
+                ev.plot_ape_over_distance(out / "errors.png", a)
+        except InputFormatError as e:
+            metrics["ground_truth_error"] = str(e)
+            gt = None
+    else:
+        metrics["path_length_m"] = ev.path_length(traj)
+    if plots:
+        ev.plot_trajectory(out / "trajectory.png", traj, gt, title=Path(path).name)
+        resid = factor_residuals(est, poses)
+        if len(reproj):
+            resid = {"reprojection (px)": reproj, **resid}
+        if resid:
+            ev.plot_residual_histograms(out / "residuals.png", resid)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default) + "\n")
+    return metrics
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def _write_map(est: Estimator, poses: np.ndarray, path: Path) -> None:
+    pts, cols = [], []
+    vis = est.visual
+    for kf in est.keyframes:
+        if kf.scan is None:
+            continue
+        P = kf.scan.points
+        world = host.transform_points(poses[kf.index], P)
+        grey = np.full(len(P), 128.0)
+        if vis is not None and kf.image is not None:
+            Xc = host.transform_points(vis.T_cb, P)
+            front = Xc[:, 2] > 0.3
+            uv = Xc[:, :2] / np.where(front, Xc[:, 2], 1.0)[:, None]
+            u = vis.K[0, 0] * uv[:, 0] + vis.K[0, 2]
+            v = vis.K[1, 1] * uv[:, 1] + vis.K[1, 2]
+            h, w = kf.image.shape[:2]
+            ok = front & (u >= 0) & (u < w - 1) & (v >= 0) & (v < h - 1)
+            grey[ok] = kf.image[v[ok].astype(int), u[ok].astype(int)]
+        pts.append(world)
+        cols.append(grey)
+    if not pts:
+        return
+    P = np.concatenate(pts)
+    g = np.concatenate(cols)
+    write_ply(path, P, colors=np.repeat(g[:, None], 3, axis=1))

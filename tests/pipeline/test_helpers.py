@@ -1,0 +1,546 @@
+"""The estimator's host-side helpers: NumPy SO(3)/SE(3) (jaxslam.lie.host) against
+jaxslam.lie, the pipeline configuration, IMU bookkeeping against closed forms and the
+preintegration, and the visual front end's undistortion and LiDAR plane depth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam.errors import ConfigError
+from jaxslam.factors import PreintegrationParams, cut_imu_stream, predict_imu_state, preintegrate
+from jaxslam.lie import SE3, SO3, host
+from jaxslam.pipeline import PipelineConfig, RigConfig, config_from_dict, find_rig, load_config, load_rig, save_config
+from jaxslam.pipeline._imu import ImuBuffer, NavState, gravity_alignment, preintegrate_interval, propagate
+from jaxslam.pipeline._visual import plane_depth, undistort_normalized
+from jaxslam.sim._camera import distort
+
+TOL = 1e-12
+
+
+def unit(rng: np.random.Generator, n: int) -> np.ndarray:
+    a = rng.normal(size=(n, 3))
+    return a / np.linalg.norm(a, axis=1, keepdims=True)
+
+
+def rotvecs(rng: np.random.Generator, n: int, angles) -> np.ndarray:
+    """Rotation vectors with the given angles (scalar or (n,)) about random axes."""
+    return unit(rng, n) * np.broadcast_to(np.asarray(angles, float), (n,))[:, None]
+
+
+# angles: generic, tiny (series branches), the SE(3) V-matrix threshold region, near pi
+ANGLES = {
+    "random": None,
+    "zero": 0.0,
+    "1e-9": 1e-9,
+    "1e-7": 1e-7,
+    "1e-3": 1e-3,
+    "pi-1e-9": np.pi - 1e-9,
+    "pi-1e-6": np.pi - 1e-6,
+    "pi": np.pi,
+}
+
+
+def angles_for(name: str, rng: np.random.Generator, n: int) -> np.ndarray:
+    return rng.uniform(0, np.pi, n) if ANGLES[name] is None else np.full(n, ANGLES[name])
+
+
+# --- jaxslam.lie.host ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(ANGLES))
+def test_so3_exp_and_log_match_jaxslam_lie(name):
+    rng = np.random.default_rng(0)
+    w = rotvecs(rng, 64, angles_for(name, rng, 64))
+    R = host.so3_exp(w)
+    np.testing.assert_allclose(R, np.asarray(SO3.exp(w).as_matrix()), rtol=0, atol=TOL)
+    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=TOL)
+    back = host.so3_log(R)
+    if name == "pi":  # log at pi is defined up to sign: compare the rotation it gives
+        np.testing.assert_allclose(host.so3_exp(back), R, rtol=0, atol=TOL)
+        np.testing.assert_allclose(np.linalg.norm(back, axis=1), np.pi, rtol=0, atol=TOL)
+    else:
+        np.testing.assert_allclose(back, w, rtol=0, atol=1e-9 if name.startswith("pi") else TOL)
+        np.testing.assert_allclose(back, np.asarray(SO3.from_matrix(R).log()), rtol=0, atol=1e-9)
+
+
+def test_so3_log_near_pi_is_accurate_in_the_rotation():
+    """Near pi the vector is ill-conditioned in the matrix (d theta ~ eps / (pi - theta)), so
+    the check is the round trip through exp, and agreement with jaxslam.lie to 1e-12."""
+    rng = np.random.default_rng(1)
+    for gap in (1e-3, 1e-6, 1e-9, 0.0):
+        R = np.asarray(SO3.exp(rotvecs(rng, 32, np.pi - gap)).as_matrix())
+        w = host.so3_log(R)
+        np.testing.assert_allclose(host.so3_exp(w), R, rtol=0, atol=TOL)
+        assert np.all(np.linalg.norm(w, axis=1) <= np.pi + 1e-12)
+
+
+def test_quaternion_round_trips_and_batch_shapes():
+    rng = np.random.default_rng(2)
+    q = rng.normal(size=(4, 5, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(q[..., :1] < 0, -q, q)
+    R = host.quat_to_matrix(q)
+    assert R.shape == (4, 5, 3, 3)
+    np.testing.assert_allclose(R, np.asarray(SO3(jnp.asarray(q)).as_matrix()), rtol=0, atol=TOL)
+    np.testing.assert_allclose(host.matrix_to_quat(R), q, rtol=0, atol=TOL)
+    np.testing.assert_allclose(host.quat_to_matrix(3.0 * q), R, rtol=0, atol=TOL)  # normalised first
+    # every Shepperd branch: rotations of pi about x, y, z and identity
+    for w in (np.zeros(3), [np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi], [2.0, 2.0, 0.1]):
+        Rw = host.so3_exp(np.asarray(w, float))
+        qw = host.matrix_to_quat(Rw)
+        assert qw.shape == (4,) and qw[0] >= 0
+        np.testing.assert_allclose(host.quat_to_matrix(qw), Rw, rtol=0, atol=TOL)
+
+
+def test_params_and_matrices_match_se3():
+    rng = np.random.default_rng(3)
+    xi = np.concatenate([rotvecs(rng, 50, rng.uniform(0, np.pi, 50)), rng.normal(size=(50, 3)) * 5], 1)
+    g = SE3.exp(xi)
+    params = np.asarray(g.params)
+    T = host.params_to_matrix(params)
+    np.testing.assert_allclose(T, np.asarray(g.as_matrix()), rtol=0, atol=TOL)
+    p2 = host.matrix_to_params(T)
+    p2 = np.where((p2[:, :1] < 0) != (params[:, :1] < 0), -p2 * [1, 1, 1, 1, -1, -1, -1], p2)  # q ~ -q
+    np.testing.assert_allclose(p2, params, rtol=0, atol=TOL)
+    np.testing.assert_allclose(host.inverse(T), np.asarray(g.inverse().as_matrix()), rtol=0, atol=TOL)
+    pts = rng.normal(size=(7, 3))
+    np.testing.assert_allclose(host.transform_points(T[0], pts), np.asarray(g[0].act(pts)), rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("name", ["random", "zero", "1e-9", "1e-3", "pi-1e-6"])
+def test_se3_exp_and_log_match_jaxslam_lie(name):
+    rng = np.random.default_rng(4)
+    xi = np.concatenate([rotvecs(rng, 64, angles_for(name, rng, 64)), rng.normal(size=(64, 3)) * 3], 1)
+    T = host.se3_exp(xi)
+    np.testing.assert_allclose(T, np.asarray(SE3.exp(xi).as_matrix()), rtol=0, atol=TOL)
+    back = host.se3_log(T)
+    np.testing.assert_allclose(back, np.asarray(SE3.exp(xi).log()), rtol=0, atol=1e-9 if name.startswith("pi") else TOL)
+
+
+@pytest.mark.parametrize("angle", [1.1e-6, 3e-6, 1e-5])
+def test_se3_exp_small_rotation_precision(angle):
+    rng = np.random.default_rng(5)
+    xi = np.concatenate([rotvecs(rng, 200, angle), rng.normal(size=(200, 3))], 1)
+    np.testing.assert_allclose(host.se3_exp(xi), np.asarray(SE3.exp(xi).as_matrix()), rtol=0, atol=TOL)
+
+
+def test_adjoint_conjugates_the_exponential():
+    rng = np.random.default_rng(6)
+    xi_T = np.concatenate([rotvecs(rng, 40, rng.uniform(0, 3, 40)), rng.normal(size=(40, 3)) * 4], 1)
+    T = host.se3_exp(xi_T)
+    xi = np.concatenate([rotvecs(rng, 40, rng.uniform(0, 3, 40)), rng.normal(size=(40, 3))], 1)
+    A = host.adjoint(T)
+    np.testing.assert_allclose(A, np.asarray(SE3.exp(xi_T).adjoint()), rtol=0, atol=TOL)
+    lhs = T @ host.se3_exp(xi) @ host.inverse(T)
+    rhs = host.se3_exp(np.einsum("nij,nj->ni", A, xi))
+    np.testing.assert_allclose(lhs, rhs, rtol=0, atol=1e-11)
+
+
+def test_interpolate_pose():
+    rng = np.random.default_rng(7)
+    for _ in range(10):
+        g0 = SE3.exp(np.concatenate([rotvecs(rng, 1, rng.uniform(0, 3))[0], rng.normal(size=3)]))
+        d = np.concatenate([rotvecs(rng, 1, rng.uniform(0, 3))[0], rng.normal(size=3)])
+        g1 = g0 @ SE3.exp(d)
+        T0, T1 = np.asarray(g0.as_matrix()), np.asarray(g1.as_matrix())
+        s = np.array([0.0, 0.25, 0.5, 1.0])
+        out = host.interpolate_pose(T0, T1, s)
+        np.testing.assert_allclose(out[0], T0, rtol=0, atol=TOL)
+        np.testing.assert_allclose(out[-1], T1, rtol=0, atol=1e-11)
+        for k, sk in enumerate(s):
+            R_want = np.asarray((g0.rotation @ SO3.exp(sk * d[:3])).as_matrix())
+            np.testing.assert_allclose(out[k, :3, :3], R_want, rtol=0, atol=1e-11)
+            np.testing.assert_allclose(out[k, :3, 3], (1 - sk) * T0[:3, 3] + sk * T1[:3, 3], rtol=0, atol=TOL)
+
+
+# --- pipeline configuration ----------------------------------------------------------------------
+
+
+def test_config_round_trip(tmp_path):
+    cfg = PipelineConfig().replace(
+        rig={
+            "camera_intrinsics": (300.125, 299.5, 256.0, 160.25),
+            "gravity": 9.80665,
+            "accelerometer_noise_density": 1.23e-7,
+        },
+        vision={"enhance": False, "max_keypoints": 777, "detector": "sift"},
+        lidar={"voxel": 0.1 + 0.2},
+        solver={"mode": "batch"},
+    )
+    save_config(cfg, tmp_path / "c.yaml")
+    back = load_config(tmp_path / "c.yaml")
+    assert back == cfg
+    assert isinstance(back.rig.camera_intrinsics, tuple) and back.lidar.voxel == 0.1 + 0.2
+    assert load_config(tmp_path / "c.yaml", base=PipelineConfig()) == cfg
+
+
+def test_config_partial_file_keeps_defaults(tmp_path):
+    (tmp_path / "c.yaml").write_text("vision:\n  enhance: false\nloop:\n")
+    cfg = load_config(tmp_path / "c.yaml")
+    assert cfg == PipelineConfig().replace(vision={"enhance": False})
+
+
+def test_replace():
+    cfg = PipelineConfig()
+    new = cfg.replace(vision={"enhance": False})
+    assert new.vision.enhance is False and cfg.vision.enhance is True
+    assert dataclasses.replace(new.vision, enhance=True) == cfg.vision and new.rig == cfg.rig
+    with pytest.raises(ConfigError, match="enhanse"):
+        cfg.replace(vision={"enhanse": False})
+
+
+@pytest.mark.parametrize(
+    ("data", "named"),
+    [
+        ({"visoin": {}}, "visoin"),
+        ({"vision": {"enhanse": False}}, "enhanse"),
+        ({"rig": {"camera_intrinsic": [1, 2, 3, 4]}}, "camera_intrinsic"),
+        ({"vision": "yes"}, "vision"),
+    ],
+)
+def test_unknown_sections_and_keys_raise_naming_them(tmp_path, data, named):
+    with pytest.raises(ConfigError, match=named):
+        config_from_dict(data)
+    import yaml
+
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=named):
+        load_config(tmp_path / "c.yaml")
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        {"vision": {"enhance": "yes"}},
+        {"vision": {"enhance": 1}},
+        {"vision": {"ratio": "0.8"}},
+        {"rig": {"camera_size": "512x320"}},
+        {"keyframe": {"distance": None}},
+    ],
+)
+def test_wrong_types_raise(data):
+    with pytest.raises(ConfigError):
+        config_from_dict(data)
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        {"vision": {"detector": 5}},
+        {"rig": {"lidar_model": None}},
+        {"imu": {"noise_scale": True}},
+        {"vision": {"max_keypoints": 10.5}},
+        {"rig": {"camera_intrinsics": [1.0, 2.0]}},
+        {"rig": {"camera_intrinsics": ["a", "b", "c", "d"]}},
+    ],
+)
+def test_wrong_types_raise_more(data):
+    with pytest.raises(ConfigError):
+        config_from_dict(data)
+
+
+def test_replace_unknown_section_raises_config_error():
+    with pytest.raises(ConfigError, match="visoin"):
+        PipelineConfig().replace(visoin={"enhance": False})
+
+
+def test_missing_and_bad_files(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "none.yaml")
+    (tmp_path / "bad.yaml").write_text("vision: [1, 2\n")
+    with pytest.raises(ConfigError, match="YAML"):
+        load_config(tmp_path / "bad.yaml")
+
+
+def test_load_rig_reads_the_simulator_calibration(tmp_path):
+    from jaxslam.sim import SimConfig
+    from jaxslam.sim._recording import rig_calibration, write_rig
+
+    write_rig(SimConfig(), tmp_path / "run.rig.yaml")
+    rig = load_rig(tmp_path / "run.rig.yaml")
+    assert isinstance(rig, RigConfig)
+    want = {k: tuple(v) if isinstance(v, list) else v for k, v in rig_calibration(SimConfig()).items()}
+    assert dataclasses.asdict(rig) == want
+    assert set(want) == {f.name for f in dataclasses.fields(RigConfig)}  # every field written
+    np.testing.assert_allclose(rig.K()[[0, 1, 0, 1], [0, 1, 2, 2]], want["camera_intrinsics"])
+    # a bare mapping (no rig: section) reads the same; unknown keys are named
+    import yaml
+
+    (tmp_path / "bare.yaml").write_text(yaml.safe_dump(rig_calibration(SimConfig())))
+    assert load_rig(tmp_path / "bare.yaml") == rig
+    (tmp_path / "bad.yaml").write_text("rig:\n  focal: 3\n")
+    with pytest.raises(ConfigError, match="focal"):
+        load_rig(tmp_path / "bad.yaml")
+    with pytest.raises(ConfigError):
+        load_rig(tmp_path / "none.yaml")
+
+
+def test_find_rig(tmp_path):
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"")
+    assert find_rig(bag) is None
+    (tmp_path / "run.rig.yaml").write_text("rig: {}\n")
+    assert find_rig(bag) == tmp_path / "run.rig.yaml"
+    folder = tmp_path / "euroc"
+    folder.mkdir()
+    (folder / "rig.yaml").write_text("rig: {}\n")
+    assert find_rig(folder) == folder / "rig.yaml"
+    (tmp_path / "euroc.rig.yaml").write_text("rig: {}\n")
+    assert find_rig(folder) == tmp_path / "euroc.rig.yaml"  # <stem>.rig.yaml first
+
+
+# --- IMU -----------------------------------------------------------------------------------------
+
+G = np.array([0.0, 0.0, -9.81])
+
+
+def buffer(t: np.ndarray, acc: np.ndarray, gyro: np.ndarray) -> ImuBuffer:
+    buf = ImuBuffer()
+    for k in range(len(t)):
+        assert buf.append(float(t[k]), acc[k], gyro[k])
+    return buf
+
+
+def test_buffer_append_rejects_old_samples_and_grows():
+    buf = ImuBuffer()
+    t = np.arange(3000) * 0.005
+    for k in range(3000):
+        buf.append(t[k], np.full(3, k), np.zeros(3))
+    assert buf.n == 3000 and buf.last_time == t[-1] and buf.acc[2999, 0] == 2999
+    assert not buf.append(t[-1], np.zeros(3), np.zeros(3))
+    assert not buf.append(t[-1] - 1, np.zeros(3), np.zeros(3))
+    assert buf.n == 3000
+
+
+def test_interval_holds_each_sample_until_the_next():
+    t = np.arange(10) * 0.01
+    acc = np.arange(30.0).reshape(10, 3)
+    buf = buffer(t, acc, -acc)
+    a, g, dt, gap = buf.interval(0.003, 0.047)
+    np.testing.assert_array_equal(a, acc[0:5])
+    np.testing.assert_array_equal(g, -acc[0:5])
+    np.testing.assert_allclose(dt, [0.007, 0.01, 0.01, 0.01, 0.007], rtol=0, atol=1e-15)
+    assert dt.sum() == pytest.approx(0.044, abs=1e-15) and gap == pytest.approx(0.01)
+    a, _, dt, _ = buf.interval(0.02, 0.05)  # ta on a sample: that sample opens the interval
+    np.testing.assert_array_equal(a, acc[2:5])
+    np.testing.assert_allclose(dt, [0.01] * 3, atol=1e-15)
+    a, _, dt, gap = buf.interval(0.0212, 0.0288)  # inside one hold
+    np.testing.assert_array_equal(a, acc[2:3])
+    np.testing.assert_allclose(dt, [0.0076], atol=1e-15)
+    a, _, dt, gap = buf.interval(0.095, 0.2)  # past the last sample: the last one held
+    np.testing.assert_array_equal(a, acc[9:10])
+    assert dt.sum() == pytest.approx(0.105) and gap == pytest.approx(0.105)
+
+
+def test_interval_max_gap_and_agreement_with_cut_imu_stream():
+    rng = np.random.default_rng(8)
+    t = np.cumsum(rng.uniform(0.004, 0.006, 400))
+    t = np.delete(t, np.arange(150, 190))  # a gap of ~0.2 s
+    acc, gyro = rng.normal(size=(len(t), 3)), rng.normal(size=(len(t), 3))
+    buf = buffer(t, acc, gyro)
+    kf = np.sort(rng.uniform(t[0], t[-1], 6))
+    iv = cut_imu_stream(t, acc, gyro, kf)
+    for k in range(len(kf) - 1):
+        a, g, dt, gap = buf.interval(kf[k], kf[k + 1])
+        m = iv.mask[k]
+        np.testing.assert_array_equal(a, iv.acc[k][m])
+        np.testing.assert_array_equal(g, iv.gyro[k][m])
+        np.testing.assert_allclose(dt, iv.dt[k][m], rtol=0, atol=1e-15)
+        assert dt.sum() == pytest.approx(kf[k + 1] - kf[k], abs=1e-12)
+        assert gap == pytest.approx(dt.max())
+    a, g, dt, gap = buf.interval(t[140], t[200])
+    assert gap == pytest.approx(t[150] - t[149])
+
+
+def _gamma2(phi: np.ndarray) -> np.ndarray:
+    """int_0^1 int_0^s Exp(u phi) du ds = I/2 + (t - sin t)/t^3 K + (t^2/2 + cos t - 1)/t^4 K^2
+    (the second of the Gamma functions in Forster et al.'s supplementary material)."""
+    th = np.linalg.norm(phi)
+    K = host.skew(phi)
+    return 0.5 * np.eye(3) + (th - np.sin(th)) / th**3 * K + (th**2 / 2 + np.cos(th) - 1) / th**4 * (K @ K)
+
+
+def _exact(R0, p0, v0, w, f, T):
+    """Constant body rate ``w`` and specific force ``f`` for ``T`` s: R, p, v (closed form)."""
+    R = R0 @ np.asarray(SO3.exp(w * T).as_matrix())
+    g1 = np.asarray(SE3.exp(np.concatenate([w * T, f * T])).translation)  # T Jl(wT) f
+    v = v0 + G * T + R0 @ g1
+    p = p0 + v0 * T + 0.5 * G * T**2 + R0 @ (T**2 * _gamma2(w * T) @ f)
+    return R, p, v
+
+
+def _constant_state(rate: float, seconds: float = 1.0, t0: float = 10.0):
+    rng = np.random.default_rng(9)
+    w, f = np.array([0.3, -0.2, 0.5]), np.array([1.0, -0.5, 9.81])
+    bias = np.concatenate([rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.01])
+    t = t0 + np.arange(int(seconds * rate) + 2) / rate
+    n = len(t)
+    buf = buffer(t, np.tile(f + bias[:3], (n, 1)), np.tile(w + bias[3:], (n, 1)))
+    R0 = host.so3_exp(np.array([0.1, 0.2, -0.3]))
+    start = NavState(t0, host.make_pose(R0, np.array([1.0, 2.0, 3.0])), np.array([0.5, 0.0, -0.1]), bias)
+    return buf, start, w, f
+
+
+def test_propagate_converges_to_the_constant_rate_closed_form():
+    T = 1.0
+    errs = []
+    for rate in (200.0, 400.0, 800.0):
+        buf, s, w, f = _constant_state(rate)
+        end, _ = propagate(buf, s, s.t + T, G)
+        R, p, v = _exact(s.T[:3, :3], s.T[:3, 3], s.v, w, f, T)
+        np.testing.assert_allclose(end.T[:3, :3], R, rtol=0, atol=1e-12)  # rotation exact
+        errs.append((np.linalg.norm(end.v - v), np.linalg.norm(end.T[:3, 3] - p)))
+        assert end.t == s.t + T
+    errs = np.array(errs)
+    assert errs[0, 0] < 1e-2 and errs[0, 1] < 1e-2, errs
+    np.testing.assert_allclose(errs[:-1] / errs[1:], 2.0, rtol=0.05)  # first order in dt
+
+
+def test_propagate_matches_preintegration_and_returns_poses_at_times():
+    rng = np.random.default_rng(10)
+    rate = 200.0
+    t = 5.0 + np.arange(120) / rate
+    acc = np.array([0.3, -0.1, 9.81]) + rng.normal(size=(120, 3)) * 0.5
+    gyro = rng.normal(size=(120, 3)) * 0.4
+    buf = buffer(t, acc, gyro)
+    bias = np.array([0.02, -0.01, 0.03, 0.001, -0.002, 0.003])
+    start = NavState(5.0013, host.se3_exp(np.array([0.1, -0.2, 0.3, 1.0, 2.0, 3.0])), np.array([1.0, 0.2, 0.0]), bias)
+    tb = 5.0013 + 0.5
+    end, _ = propagate(buf, start, tb, G)
+    a, g, dt, _ = buf.interval(start.t, tb)
+    params = PreintegrationParams.create(2e-3, 1.7e-4, 3e-4, 2e-5, gravity=G)
+    pim = preintegrate(a[None], g[None], dt[None], params, bias_hat=bias[None])
+    pose, vel = predict_imu_state(
+        pim.preintegrated,
+        pim.delta_time,
+        G[None],
+        SE3(jnp.asarray(host.matrix_to_params(start.T)[None])),
+        start.v[None],
+    )
+    # the same Euler scheme in velocity/position; the tangent rotation recurrence differs
+    # from the product of exponentials at second order in the step's rotation (~1e-6 here)
+    np.testing.assert_allclose(end.T, np.asarray(pose.as_matrix())[0], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(end.v, np.asarray(vel)[0], rtol=0, atol=1e-5)
+    # poses at times: the start, the end, and linear between the integrated stamps
+    times = np.array([start.t, tb, t[60], t[60] + 0.002])
+    _, poses = propagate(buf, start, tb, G, times=times)
+    np.testing.assert_allclose(poses[0], start.T, atol=TOL)
+    np.testing.assert_allclose(poses[1], end.T, atol=1e-12)
+    at, _ = propagate(buf, start, t[60], G)  # on a sample stamp: the integrated pose
+    np.testing.assert_allclose(poses[2], at.T, atol=1e-12)
+    mid, _ = propagate(buf, start, t[60] + 0.002, G)  # between: interpolated, ~1/2 a dt^2 off
+    np.testing.assert_allclose(poses[3], mid.T, atol=1e-4)
+
+
+def test_propagate_equals_preintegration_for_a_constant_rate():
+    """Constant rate about a fixed axis: the tangent recurrence is exact too, so the two
+    agree to rounding."""
+    buf, s, _, _ = _constant_state(200.0, seconds=0.6)
+    tb = s.t + 0.5123
+    end, _ = propagate(buf, s, tb, G)
+    a, g, dt, _ = buf.interval(s.t, tb)
+    params = PreintegrationParams.create(2e-3, 1.7e-4, 3e-4, 2e-5, gravity=G)
+    pim = preintegrate(a[None], g[None], dt[None], params, bias_hat=s.bias[None])
+    pose, vel = predict_imu_state(
+        pim.preintegrated, pim.delta_time, G[None], SE3(jnp.asarray(host.matrix_to_params(s.T)[None])), s.v[None]
+    )
+    np.testing.assert_allclose(end.T, np.asarray(pose.as_matrix())[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(end.v, np.asarray(vel)[0], rtol=0, atol=1e-9)
+
+
+def test_preintegrate_interval_equals_unpadded_preintegration():
+    rng = np.random.default_rng(11)
+    n = 103
+    acc = rng.normal(size=(n, 3)) + np.array([0, 0, 9.81])
+    gyro = rng.normal(size=(n, 3)) * 0.3
+    dt = rng.uniform(0.004, 0.006, n)
+    params = PreintegrationParams.create(2e-3, 1.7e-4, 3e-4, 2e-5)
+    bias = rng.normal(size=6) * 0.01
+    got = preintegrate_interval(acc, gyro, dt, params, bias)
+    want = preintegrate(acc[None], gyro[None], dt[None], params, bias_hat=bias[None])
+    for name in ("preintegrated", "delta_time", "bias_jacobian", "covariance", "bias_hat"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), rtol=1e-12, atol=1e-15
+        )
+    assert bool(np.asarray(got.valid)[0])
+
+
+@pytest.mark.parametrize(("roll", "pitch"), [(0.0, 0.0), (0.2, -0.1), (-0.7, 0.4), (2.5, 0.3), (np.pi, 0.0)])
+def test_gravity_alignment_recovers_roll_and_pitch_with_zero_yaw(roll, pitch):
+    Rx = host.so3_exp(np.array([roll, 0.0, 0.0]))
+    Ry = host.so3_exp(np.array([0.0, pitch, 0.0]))
+    R_wb = Ry @ Rx  # ZYX Euler angles with yaw 0
+    f = R_wb.T @ np.array([0.0, 0.0, 9.81])  # a still IMU measures -gravity in the body frame
+    for scale in (1.0, 1.02):
+        R = gravity_alignment(f * scale)
+        np.testing.assert_allclose(R, R_wb, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(R @ f / np.linalg.norm(f), [0, 0, 1], atol=1e-12)
+        assert abs(np.arctan2(R[1, 0], R[0, 0])) < 1e-12
+
+
+# --- visual --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dist", [(0.0, 0.0, 0.0, 0.0), (-0.28, 0.07, 2e-4, -1e-4), (0.1, -0.02, 1e-3, 5e-4)])
+def test_undistort_inverts_radtan(dist):
+    rng = np.random.default_rng(12)
+    K = np.array([[281.6, 0, 255.5], [0, 281.6, 159.5], [0, 0, 1.0]])
+    xn = rng.uniform([-0.9, -0.55], [0.9, 0.55], (500, 2))
+    xd, yd = distort(xn[:, 0], xn[:, 1], dist)
+    uv = np.stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]], 1)
+    np.testing.assert_allclose(undistort_normalized(uv, K, dist), xn, rtol=0, atol=1e-9)
+
+
+def _plane_points(rng, n, normal, d, noise=0.0):
+    """Points on ``normal . X = d`` in front of the camera (z in about 2..6 m)."""
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    xy = rng.uniform(-2.0, 2.0, (n, 2))
+    z = (d - normal[0] * xy[:, 0] - normal[1] * xy[:, 1]) / normal[2]
+    pts = np.concatenate([xy, z[:, None]], 1)
+    return pts + rng.normal(size=pts.shape) * noise, normal
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.002])
+def test_plane_depth_hits_the_plane(noise):
+    rng = np.random.default_rng(13)
+    pts, n = _plane_points(rng, 4000, [0.2, -0.1, 1.0], 4.0, noise)
+    xn = rng.uniform(-0.3, 0.3, (200, 2))
+    X = plane_depth(xn, pts, radius=0.05)
+    rays = np.concatenate([xn, np.ones((200, 1))], 1)
+    want = rays * (4.0 / (rays @ n))[:, None]  # the plane is n . X = 4, |n| = 1
+    ok = np.isfinite(X[:, 0])
+    assert ok.mean() > 0.95
+    np.testing.assert_allclose(X[ok], want[ok], rtol=0, atol=1e-9 if noise == 0 else 5 * noise)
+    np.testing.assert_allclose(X[ok, :2] / X[ok, 2:], xn[ok], atol=1e-12)  # on the ray
+
+
+def test_plane_depth_nan_without_enough_points():
+    rng = np.random.default_rng(14)
+    pts, _ = _plane_points(rng, 2000, [0.0, 0.0, 1.0], 3.0)
+    pts = pts[pts[:, 0] < 0]  # only the left half
+    xn = np.array([[-0.2, 0.0], [0.3, 0.0], [5.0, 5.0]])
+    X = plane_depth(xn, pts, radius=0.06)
+    np.testing.assert_allclose(X[0], [-0.6, 0.0, 3.0], atol=1e-9)
+    assert np.all(np.isnan(X[1:]))
+    assert np.all(np.isnan(plane_depth(xn, pts[:4], radius=10.0)))  # fewer than min_points in all
+    assert plane_depth(np.zeros((0, 2)), pts, 0.1).shape == (0, 3)
+
+
+def test_plane_depth_nan_at_a_corner():
+    """A front wall (z = 3, x <= 1) meeting a side wall (x = 1, z <= 3) seen from inside:
+    sparse LiDAR (0.15 m); rays near the corner line (x_n = 1/3) see both planes -> NaN;
+    rays well inside either wall get that wall's depth."""
+    g = np.arange(-1.0, 1.0 + 1e-9, 0.15)
+    front = np.array([[x, y, 3.0] for x in g for y in g])
+    side = np.array([[1.0, y, z] for z in np.arange(1.0, 3.0 - 1e-9, 0.15) for y in g])
+    pts = np.concatenate([front, side])
+    corner = np.stack([1 / 3 + np.linspace(-0.025, 0.0, 6), np.zeros(6)], 1)
+    assert np.all(np.isnan(plane_depth(corner, pts, radius=0.1)))
+    X = plane_depth(np.array([[0.0, 0.0], [0.1, 0.05], [0.6, 0.0]]), pts, radius=0.1)
+    np.testing.assert_allclose(X[0], [0.0, 0.0, 3.0], atol=1e-9)
+    np.testing.assert_allclose(X[1], [0.3, 0.15, 3.0], atol=1e-9)
+    np.testing.assert_allclose(X[2], [1.0, 0.0, 1 / 0.6], atol=1e-9)
