@@ -34,6 +34,7 @@ from ..errors import InputFormatError
 from ..io import Trajectory, read_trajectory
 from ..io._parse import check_field_count, parse_floats, read_data_lines
 from ..lie import SE3, SO3
+from ..lie.host import quat_to_matrix
 
 AlignMode = Literal["se3", "sim3", "none", "origin"]
 ALIGN_MODES: tuple[str, ...] = ("se3", "sim3", "none", "origin")
@@ -106,17 +107,6 @@ def rotations_of(track: Track, what: str = "trajectory") -> np.ndarray:
     if isinstance(track, PositionTrack):
         raise ValueError(f"{what} is position-only (PositionTrack); this needs orientations")
     return quat_to_matrix(np.asarray(track.poses.params, dtype=np.float64)[:, :4])
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of Hamilton unit quaternions ``(..., 4)`` in wxyz order."""
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -168,7 +168,9 @@ class SolverOptions:
     mode: str = "incremental"
     """``incremental`` (jaxslam's iSAM2-class solver) or ``batch`` (LM every keyframe)."""
     final_optimize: bool = True
-    """After the last keyframe, relinearise everything and solve to the batch optimum."""
+    """After the last keyframe, relinearise everything and solve to the batch optimum
+    (``IncrementalSolver.refine``: Gauss-Newton with the incremental solver's compiled
+    kernels, no batch-solver compilation)."""
 
 
 @dataclasses.dataclass(frozen=True)

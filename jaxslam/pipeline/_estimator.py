@@ -498,7 +498,7 @@ class Estimator:
         final = None
         if self.keyframes and self.cfg.solver.final_optimize:
             ts = time.perf_counter()
-            final = self.solver.optimize()
+            final = self.solver.refine()
             self.timing["solver"] += time.perf_counter() - ts
         est = self.solver.estimate() if self.keyframes else None
         poses = host.params_to_matrix(np.asarray(est.params(Pose3Var))) if est is not None else np.zeros((0, 4, 4))

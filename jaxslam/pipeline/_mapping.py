@@ -30,7 +30,7 @@ class SparseMap:
         L, e = self.track_lengths, self.residuals_px
         return {
             "points": len(L),
-            "residuals": int(len(e)),
+            "residuals": len(e),
             "track_length_min": int(L.min()) if len(L) else 0,
             "track_length_mean": float(L.mean()) if len(L) else 0.0,
             "track_length_max": int(L.max()) if len(L) else 0,
@@ -53,7 +53,7 @@ def build_sparse_map(
     if not obs_kf:
         return SparseMap(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0))
     kfi, x, tr = np.concatenate(obs_kf), np.concatenate(obs_x), np.concatenate(obs_track)
-    ids, inverse, counts = np.unique(tr, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(tr, return_inverse=True, return_counts=True)
     keep = counts[inverse] >= 2
     kfi, x, pid = kfi[keep], x[keep], inverse[keep]
     _, pid = np.unique(pid, return_inverse=True)

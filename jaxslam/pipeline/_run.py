@@ -2,7 +2,8 @@
 
 Outputs in ``outdir``: ``trajectory_tum.txt``, ``trajectory_kitti.txt`` (+ ``times.txt``),
 ``map.ply`` (deskewed keyframe scans at the optimised poses, grey from the camera where a
-keyframe image sees the point), ``points.ply`` (the sparse visual map), ``metrics.json``, ``config.yaml`` (effective), and plots
+keyframe image sees the point), ``points.ply`` (the sparse visual map), ``metrics.json``,
+``config.yaml`` (effective), and plots
 ``trajectory.png``, ``errors.png`` (when ground truth exists) and ``residuals.png``.
 """
 

@@ -552,13 +552,13 @@ class IncrementalSolver:
         loop_t0 = self._loop_window(new_refs)
         full = self._since_full + 1 >= cfg.full_solve_every
         if full:
-            t0 = 0
+            w0 = 0
         elif loop_t0 is not None:
-            t0 = max(0, loop_t0 - cfg.loop_margin)
+            w0 = max(0, loop_t0 - cfg.loop_margin)
         else:
-            t0 = max(0, self.updates - cfg.window)
-        self._window_solve(t0, affected)
-        if full or t0 == 0:
+            w0 = max(0, self.updates - cfg.window)
+        self._window_solve(w0, affected)
+        if full or w0 == 0:
             self._since_full = 0
             self.full_solves += 1
         else:
@@ -838,6 +838,38 @@ class IncrementalSolver:
             self._relinearize(gi, np.arange(g.n))
         self._since_full = 0
         return result
+
+    def refine(self, max_iterations: int = 10, relative_tol: float = 1e-10) -> tuple[float, float, int]:
+        """Gauss-Newton on the whole graph with this solver's own compiled kernels: relinearise
+        every factor at the estimate, solve the full linear system, repeat until the cost
+        decreases by less than ``relative_tol`` (a step that raises the cost is undone).
+        Reaches the batch optimum like :meth:`optimize` from a good estimate, without
+        compiling the batch solver's programs (tens of seconds on a fresh process). Returns
+        ``(initial cost, final cost, iterations)``."""
+        first = prev = self.cost()
+        it = 0
+        for it in range(1, max_iterations + 1):  # noqa: B007 - reported
+            saved = [(s.x[: s.n].copy(), s.x_lin[: s.n].copy(), s.delta[: s.n].copy()) for s in self._store_list]
+            for s in self._store_list:
+                live = np.nonzero(s.live[: s.n])[0]
+                s.x_lin[live] = s.x[live]
+                s.delta[live] = 0.0
+            for gi, g in enumerate(self._group_list):
+                self._relinearize(gi, np.arange(g.n))
+            self._window_solve(0, {})
+            self._since_full = 0
+            cost = self.cost()
+            if not cost <= prev:  # worse (or NaN): undo the step and stop
+                for s, (x, xl, d) in zip(self._store_list, saved):
+                    s.x[: s.n], s.x_lin[: s.n], s.delta[: s.n] = x, xl, d
+                for gi, g in enumerate(self._group_list):
+                    self._relinearize(gi, np.arange(g.n))
+                break
+            done = prev - cost <= relative_tol * max(prev, 1e-300)
+            prev = cost
+            if done:
+                break
+        return first, prev, it
 
     # --- queries ---------------------------------------------------------------------------------
     def cost(self) -> float:

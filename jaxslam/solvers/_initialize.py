@@ -20,59 +20,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..errors import GraphError
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """wxyz unit quaternions ``(N, 4)`` to rotation matrices (numpy: no JAX dispatch here)."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=-2,
-    )
-
-
-def _matrix_to_quat(m: np.ndarray) -> np.ndarray:
-    """Rotation matrices to wxyz quaternions with w >= 0 (Shepperd's method, numpy)."""
-    tr = np.trace(m, axis1=1, axis2=2)
-    d = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
-    k = np.argmax(d, axis=1)
-    q = np.empty((len(m), 4))
-    for case in range(4):
-        s = k == case
-        if not np.any(s):
-            continue
-        a = m[s]
-        if case == 0:
-            r = np.sqrt(1 + tr[s]) * 2
-            q[s] = np.stack(
-                [0.25 * r, (a[:, 2, 1] - a[:, 1, 2]) / r, (a[:, 0, 2] - a[:, 2, 0]) / r, (a[:, 1, 0] - a[:, 0, 1]) / r],
-                1,
-            )
-        elif case == 1:
-            r = np.sqrt(1 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2]) * 2
-            q[s] = np.stack(
-                [(a[:, 2, 1] - a[:, 1, 2]) / r, 0.25 * r, (a[:, 0, 1] + a[:, 1, 0]) / r, (a[:, 0, 2] + a[:, 2, 0]) / r],
-                1,
-            )
-        elif case == 2:
-            r = np.sqrt(1 - a[:, 0, 0] + a[:, 1, 1] - a[:, 2, 2]) * 2
-            q[s] = np.stack(
-                [(a[:, 0, 2] - a[:, 2, 0]) / r, (a[:, 0, 1] + a[:, 1, 0]) / r, 0.25 * r, (a[:, 1, 2] + a[:, 2, 1]) / r],
-                1,
-            )
-        else:
-            r = np.sqrt(1 - a[:, 0, 0] - a[:, 1, 1] + a[:, 2, 2]) * 2
-            q[s] = np.stack(
-                [(a[:, 1, 0] - a[:, 0, 1]) / r, (a[:, 0, 2] + a[:, 2, 0]) / r, (a[:, 1, 2] + a[:, 2, 1]) / r, 0.25 * r],
-                1,
-            )
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return np.where(q[:, :1] < 0, -q, q)
+from ..lie.host import matrix_to_quat as _matrix_to_quat
+from ..lie.host import quat_to_matrix as _quat_to_matrix
 
 
 def _solve_anchored(

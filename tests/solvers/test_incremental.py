@@ -66,6 +66,19 @@ def test_optimize_reaches_batch_optimum(name: str) -> None:
     assert running >= inc - 1e-9 * ref  # the running estimate is a valid estimate, not better than the optimum
 
 
+@pytest.mark.parametrize("name", ["tinyGrid3D.g2o", "smallGrid3D.g2o"])
+def test_refine_reaches_batch_optimum_without_the_batch_solver(name: str) -> None:
+    """refine(): Gauss-Newton with the incremental kernels ends at the batch optimum too."""
+    graph = read_g2o(DATA / name)
+    solver, fed = _replay(graph)
+    first, last, iterations = solver.refine()
+    assert last <= first and iterations >= 1
+    inc = _gtsam_error(fed, solver.estimate())
+    ref = _gtsam_error(fed, optimize(fed, graph.values, SolverConfig(max_iterations=200)).values)
+    assert abs(inc - ref) <= 1e-6 * ref, (inc, ref)
+    assert last == pytest.approx(inc, rel=1e-9)  # its own cost is GTSAM's
+
+
 def _chain_problem(n: int, seed: int = 0):
     """A noisy SE(3) chain with a prior on pose 0 and loop closures from the last poses back
     to the first ones (added late)."""
