@@ -2,12 +2,13 @@
 
 from .. import _config  # noqa: F401
 from ._between import BetweenFactor, PriorFactor
+from ._direction import RelativeDirectionFactor
 from ._imu import BiasRandomWalkFactor, ImuFactor, ImuFactorComponentWise, predict_imu_state
 from ._imu_params import PreintegrationParams
 from ._preintegration import ImuIntervals, PreintegratedImu, cut_imu_stream, preintegrate, preintegrate_stream
 from ._reprojection import ReprojectionFactor, pinhole_project, project_pinhole
 
-__all__ = ["BetweenFactor", "PriorFactor"]
+__all__ = ["BetweenFactor", "PriorFactor", "RelativeDirectionFactor"]
 __all__ += ["ReprojectionFactor", "pinhole_project", "project_pinhole"]
 __all__ += [
     "BiasRandomWalkFactor",

@@ -38,7 +38,14 @@ import numpy as np
 
 from ..core import BiasVar, Cauchy, Gaussian, Pose3Var, Values, VelocityVar
 from ..errors import InputFormatError
-from ..factors import BetweenFactor, BiasRandomWalkFactor, ImuFactor, PreintegrationParams, PriorFactor
+from ..factors import (
+    BetweenFactor,
+    BiasRandomWalkFactor,
+    ImuFactor,
+    PreintegrationParams,
+    PriorFactor,
+    RelativeDirectionFactor,
+)
 from ..lie import SE3, host
 from ..measurements import Image, ImuSample, LidarScan, PoseStamped, PositionFix
 from ..solvers import IncrementalConfig, IncrementalSolver
@@ -46,7 +53,7 @@ from ._config import PipelineConfig
 from ._imu import ImuBuffer, NavState, gravity_alignment, preintegrate_interval, propagate
 from ._lidar_frontend import LidarOdometry, ScanResult, information_for_factor
 from ._loop import LoopCloser
-from ._visual import KeyframeFeatures, VisualFrontend, VisualMeasurement
+from ._visual import DirectionMeasurement, KeyframeFeatures, VisualFrontend, VisualMeasurement
 
 
 class _Done:
@@ -122,6 +129,8 @@ class Estimator:
         self.ground_truth: list[PoseStamped] = []
         self.fixes: list[PositionFix] = []
         self.visual_edges: list[VisualMeasurement] = []
+        self.direction_edges = 0
+        """Scale-free visual factors added (no LiDAR depth)."""
         self.edges: list[tuple[str, int, int, np.ndarray, np.ndarray]] = []
         """Between factors added: (kind, i, j, measured T_i^-1 T_j, information)."""
         self.last_scan_t = -np.inf
@@ -424,9 +433,19 @@ class Estimator:
 
     def _collect_vision(self, wait: bool) -> list:
         """Factors of the finished vision jobs, in keyframe order."""
-        out = []
+        out: list[Any] = []
         while self._vjobs and (wait or self._vjobs[0].done()):
             kf, paired, vms = self._vjobs.popleft().result()
+            for dm in [v for v in vms if isinstance(v, DirectionMeasurement)]:
+                sr, sd = self.cfg.vision.direction_sigmas
+                noise = Gaussian.diagonal(jnp.asarray([sr] * 3 + [sd] * 2))
+                ids = (Pose3Var(np.array([dm.i])), Pose3Var(np.array([dm.j])))
+                tbc = np.asarray(self.cfg.rig.body_T_camera)
+                out.append(RelativeDirectionFactor.create(*ids, dm.R, dm.u, tbc, noise, robust=Cauchy(1.0)))
+                self.direction_edges += 1
+                kf.registered = True
+                self.keyframes[dm.i].registered = True
+            vms = [v for v in vms if isinstance(v, VisualMeasurement)]
             for vm in vms:
                 self._calibrate_scale(vm)
                 if self._vo_scale != 1.0:
@@ -437,7 +456,7 @@ class Estimator:
                 self.visual_edges.append(vm)
                 kf.registered = True
                 self.keyframes[vm.i].registered = True
-            if paired and not any(vm.i == kf.index - 1 for vm in vms):
+            if paired and not kf.registered:
                 self.warnings["camera: keyframe not registered (too few inliers)"] += 1
         return out
 

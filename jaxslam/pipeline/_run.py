@@ -164,6 +164,7 @@ def run_recording(
         "loops_accepted": len(est.loops.accepted) if est.loops else 0,
         "loops_rejected": len(est.loops.rejected) if est.loops else 0,
         "visual_scale": est._vo_scale,
+        "scale_free_visual_factors": est.direction_edges,
         "mapping": stats,
         "timing_s": {k: round(v, 3) for k, v in est.timing.items()},
         "warnings": dict(est.warnings),

@@ -76,6 +76,18 @@ class VisualMeasurement:
     rmse_px: float
 
 
+@dataclasses.dataclass
+class DirectionMeasurement:
+    """A scale-free relative pose (no metric depth): camera j's rotation ``R`` and unit
+    position ``u`` in camera i, from the essential matrix (RANSAC inliers)."""
+
+    i: int
+    j: int
+    R: np.ndarray
+    u: np.ndarray
+    inliers: int
+
+
 def plane_depth(
     xn: np.ndarray, pts_c: np.ndarray, radius: float, min_points: int = 5, max_rms: float = 0.03, k: int = 10
 ) -> np.ndarray:
@@ -146,7 +158,9 @@ class VisualFrontend:
         self._next_track += len(uv)
         return KeyframeFeatures(kf, t, uv, xn, desc, kp[:, 6].astype(np.float64), X, track)
 
-    def relative(self, a: KeyframeFeatures, b: KeyframeFeatures, T_ab_guess: np.ndarray) -> VisualMeasurement | None:
+    def relative(
+        self, a: KeyframeFeatures, b: KeyframeFeatures, T_ab_guess: np.ndarray
+    ) -> VisualMeasurement | DirectionMeasurement | None:
         """Relative body pose ``T_a^-1 T_b`` from keyframe ``a`` to ``b`` (``T_ab_guess`` from
         the IMU/LiDAR estimate seeds the refinement); None when too few inliers survive."""
         cfg = self.cfg
@@ -157,14 +171,22 @@ class VisualFrontend:
         if len(pairs) < max(8, cfg.min_inliers):
             return None
         ia, ib = pairs[:, 0], pairs[:, 1]
+        res = None
         if cfg.ransac:
             res = find_essential(a.xn[ia], b.xn[ib], cfg.ransac_threshold_px / self.f)
             keep = np.asarray(res.inliers)
             ia, ib = ia[keep], ib[keep]
         has = np.isfinite(a.X[ia, 0])
-        ia, ib = ia[has], ib[has]
-        if len(ia) < cfg.min_inliers:
+        if has.sum() < cfg.min_inliers:
+            # no metric depth (no LiDAR map there): fall back to the scale-free two-view pose
+            moved = float(np.linalg.norm(T_ab_guess[:3, 3])) > cfg.direction_min_motion
+            if cfg.direction_fallback and res is not None and len(ia) >= cfg.min_inliers and moved:
+                R, t = np.asarray(res.R), np.asarray(res.t)  # camera b from camera a: X_b = R X_a + t
+                u = -R.T @ t
+                if np.all(np.isfinite(u)) and np.linalg.norm(u) > 1e-9:
+                    return DirectionMeasurement(a.kf, b.kf, R.T, u / np.linalg.norm(u), len(ia))
             return None
+        ia, ib = ia[has], ib[has]
         T_cacb = self.T_cb @ T_ab_guess @ self.T_bc  # camera a <- camera b
         T_cbca = host.inverse(T_cacb)
         X, x = a.X[ia], b.xn[ib]
