@@ -169,6 +169,7 @@ def run_recording(
         "timing_s": {k: round(v, 3) for k, v in est.timing.items()},
         "warnings": dict(est.warnings),
     }
+    aligned: Any = traj
     if gt is not None:
         try:
             a = ev.ape(gt, traj, align="se3")
@@ -194,7 +195,9 @@ def run_recording(
     else:
         metrics["path_length_m"] = ev.path_length(traj)
     if plots:
-        ev.plot_trajectory(out / "trajectory.png", traj, gt, title=Path(path).name)
+        shown = traj if gt is None else aligned  # against ground truth: SE(3)-aligned, as the APE
+        title = Path(path).name + ("" if gt is None else " (estimate SE(3)-aligned to ground truth)")
+        ev.plot_trajectory(out / "trajectory.png", shown, gt, title=title)
         resid = factor_residuals(est, poses)
         if len(reproj):
             resid = {"reprojection (px)": reproj, **resid}
