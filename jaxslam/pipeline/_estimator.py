@@ -398,7 +398,7 @@ class Estimator:
         tl = time.perf_counter()
         if self.loops is not None and scan is not None and k > 0:
             est = self._poses()
-            for loop in self.loops.detect(k, self.keyframes, est, self._info_at):
+            for loop in self.loops.detect(k, self.keyframes, est):
                 factors.append(
                     _between(loop.i, loop.j, loop.T, loop.information, robust=Cauchy(self.cfg.loop.cauchy_scale))
                 )
@@ -494,9 +494,6 @@ class Estimator:
             assert self.state is not None
             P = np.concatenate([P, np.repeat(self.state.T[None], len(self.keyframes) - len(P), 0)])
         return P
-
-    def _info_at(self, k: int) -> Any:
-        return self.keyframes[k]
 
     # --- end -----------------------------------------------------------------------------------
     def finish(self) -> dict[str, Any]:

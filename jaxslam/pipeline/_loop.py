@@ -17,8 +17,6 @@ kernel in the graph.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
@@ -50,7 +48,9 @@ class LoopCloser:
         self.rejected: list[tuple[int, int, str]] = []
         self.attempts = 0
 
-    def detect(self, k: int, keyframes: list, poses: np.ndarray, _info: Callable[[int], Any]) -> list[Loop]:
+    def detect(self, k: int, keyframes: list, poses: np.ndarray) -> list[Loop]:
+        """Loops from keyframe ``k`` (every ``loop.every``-th) to older keyframes, given the
+        current pose estimates (K, 4, 4); accepted ones are also kept in ``accepted``."""
         cfg = self.cfg
         if k % cfg.every:
             return []

@@ -52,7 +52,7 @@ def _detect(tunnel, shift: np.ndarray, config: LoopConfig | None = None):
     est_cur = T_cur @ host.make_pose(np.eye(3), shift)  # the current estimate is wrong by `shift` (body)
     poses = np.concatenate([T_old, est_cur[None]])
     closer = LoopCloser(config or LoopConfig(every=1, chi2_gate=1e9), np.eye(4))
-    loops = closer.detect(len(kfs), [*kfs, cur], poses, lambda k: None)
+    loops = closer.detect(len(kfs), [*kfs, cur], poses)
     return closer, loops, T_old, T_cur
 
 
