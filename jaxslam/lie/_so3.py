@@ -42,6 +42,13 @@ def quat_rotate(q: Array, p: Array) -> Array:
     return p + w * t + jnp.cross(v, t)
 
 
+def _cos_half(theta_sq: Array) -> Array:
+    """cos(theta/2)."""
+    return series_or(
+        theta_sq, lambda t: jnp.cos(0.5 * t), (1.0, -1.0 / 8.0, 1.0 / 384.0, -1.0 / 46080.0, 1.0 / 10321920.0)
+    )
+
+
 def _sin_half_over(theta_sq: Array) -> Array:
     """sin(theta/2) / theta."""
     return series_or(
@@ -105,8 +112,9 @@ class SO3(LieGroup):
         tangent = jnp.asarray(tangent)
         batch_shape_check("SO3.exp", tangent, 3)
         theta_sq, _ = safe_norm(tangent)
-        half_theta = 0.5 * jnp.sqrt(jnp.where(theta_sq == 0.0, 1.0, theta_sq))
-        w = jnp.where(theta_sq == 0.0, 1.0, jnp.cos(half_theta))
+        # cos(theta/2) as a series in theta^2 near 0: exact second derivatives at the
+        # identity (the implicit-differentiation Hessian is taken there)
+        w = _cos_half(theta_sq)
         xyz = _sin_half_over(theta_sq)[..., None] * tangent
         return cls(jnp.concatenate([w[..., None], xyz], axis=-1))
 

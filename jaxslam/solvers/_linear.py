@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -35,6 +36,14 @@ except ImportError:  # pragma: no cover
 
 
 from ._pardiso import Pardiso, PardisoNotPositiveDefinite, pardiso_available
+
+
+def _finite_or_none(solve: Callable[[np.ndarray], np.ndarray]) -> Callable[[Array | np.ndarray], np.ndarray | None]:
+    def run(rhs: Array | np.ndarray) -> np.ndarray | None:
+        x = np.asarray(solve(np.asarray(rhs, dtype=np.float64)))
+        return x if np.all(np.isfinite(x)) else None
+
+    return run
 
 
 def available_linear_solvers() -> list[str]:
@@ -88,10 +97,24 @@ class SparseSystem:
         self, hdata: Array | np.ndarray, rhs: Array | np.ndarray, damping: np.ndarray | None = None
     ) -> np.ndarray | None:
         """Solve ``(H + diag(damping)) x = rhs``; ``None`` if not positive definite."""
+        solve = self.factorize(hdata, damping)
+        return None if solve is None else solve(rhs)
+
+    def factorize(
+        self, hdata: Array | np.ndarray, damping: np.ndarray | None = None
+    ) -> Callable[[Array | np.ndarray], np.ndarray | None] | None:
+        """Factorise ``H + diag(damping)`` once; returns ``solve(rhs)`` (reusable for several
+        right-hand sides, e.g. an adjoint's preconditioner) or ``None`` if not positive definite.
+        The returned function is valid until the next ``factorize``/``solve`` call."""
         if self.method == "pcg":
             d = jnp.zeros(self.n) if damping is None else jnp.asarray(damping)
-            x, ok = pcg_solve(jnp.asarray(hdata), self._rows, self._cols, self._diag, self._blocks, d, jnp.asarray(rhs))
-            return np.asarray(x) if bool(ok) else None
+            h = jnp.asarray(hdata)
+
+            def pcg(rhs: Array | np.ndarray) -> np.ndarray | None:
+                x, ok = pcg_solve(h, self._rows, self._cols, self._diag, self._blocks, d, jnp.asarray(rhs))
+                return np.asarray(x) if bool(ok) else None
+
+            return pcg
         data = np.array(hdata, dtype=np.float64, copy=True)
         if damping is not None:
             data[self.diag_pos] += damping
@@ -102,8 +125,7 @@ class SparseSystem:
                 self._factor.factorize(data)
             except PardisoNotPositiveDefinite:
                 return None
-            x = self._factor.solve(np.asarray(rhs, dtype=np.float64))
-            return x if np.all(np.isfinite(x)) else None
+            return _finite_or_none(self._factor.solve)
         a = self.matrix(data)
         if self.method == "cholmod":
             try:
@@ -112,25 +134,21 @@ class SparseSystem:
                 self._factor.cholesky_inplace(a)
             except CholmodNotPositiveDefiniteError:
                 return None
-            x = self._factor(np.asarray(rhs, dtype=np.float64))
-        else:
-            full = (a + sp.tril(a, -1).T).tocsc()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                try:
-                    # Symmetric mode: no row pivoting, so the fill-reducing order is kept;
-                    # a non-positive pivot then means H is not positive definite.
-                    lu = sp.linalg.splu(
-                        full, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-                    )
-                except RuntimeError:
-                    return None
-            if np.any(lu.U.diagonal() <= 0):
+            return _finite_or_none(self._factor)
+        full = (a + sp.tril(a, -1).T).tocsc()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                # Symmetric mode: no row pivoting, so the fill-reducing order is kept;
+                # a non-positive pivot then means H is not positive definite.
+                lu = sp.linalg.splu(
+                    full, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+                )
+            except RuntimeError:
                 return None
-            x = lu.solve(np.asarray(rhs, dtype=np.float64))
-        if not np.all(np.isfinite(x)):
+        if np.any(lu.U.diagonal() <= 0):
             return None
-        return np.asarray(x)
+        return _finite_or_none(lu.solve)
 
     def matvec(self, hdata: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``H x`` from the stored lower triangle."""

@@ -147,6 +147,11 @@ class Solver:
         self._untouched = p.untouched_dofs
         self.initial_values = values
 
+    def set_factors(self, factors: Sequence[Factor]) -> None:
+        """New measurements, noise or kernels on the same graph structure: no re-analysis,
+        no recompilation (a learning loop re-solves with new noise weights this way)."""
+        self.problem.set_factors(list(factors))
+
     def _make_anchors(self, values: Values, sigma: float = 1e-6) -> list[_GaugeAnchor]:
         p = self.problem
         out = []

@@ -154,18 +154,8 @@ class Problem:
 
     # --- factor groups ------------------------------------------------------------------
     def _analyse_groups(self, factors: Sequence[Factor], values: Values) -> None:
-        by_type: dict[tuple[Any, ...], list[Factor]] = {}
-        for i, f in enumerate(factors):
-            n = _check_factor(f, i)
-            if n == 0:
-                continue
-            for v in f.variables:
-                if type(v) not in self.var_ids:
-                    raise GraphError(f"{type(f).__name__} (factor {i}) uses {type(v).__name__}, which has no values")
-            key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
-            by_type.setdefault(key, []).append(f)
-        if not by_type:
-            raise GraphError("the graph has no factors")
+        by_type = self._by_type(factors)
+        self._group_keys = list(by_type)
         self.structures: list[GroupStructure] = []
         self._group_factors: list[Factor] = []
         self._group_rows: list[tuple[np.ndarray, ...]] = []
@@ -185,6 +175,48 @@ class Problem:
             self.structures.append(GroupStructure(ftype, vtypes, slots, rdim, n, bucket(n)))
             self._group_factors.append(f)
             self._group_rows.append(rows)
+
+    def _by_type(self, factors: Sequence[Factor]) -> dict[tuple[Any, ...], list[Factor]]:
+        by_type: dict[tuple[Any, ...], list[Factor]] = {}
+        for i, f in enumerate(factors):
+            n = _check_factor(f, i)
+            if n == 0:
+                continue
+            for v in f.variables:
+                if type(v) not in self.var_ids:
+                    raise GraphError(f"{type(f).__name__} (factor {i}) uses {type(v).__name__}, which has no values")
+            key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+            by_type.setdefault(key, []).append(f)
+        if not by_type:
+            raise GraphError("the graph has no factors")
+        return by_type
+
+    def group_data_for(self, factors: Sequence[Factor]) -> list[GroupData]:
+        """The group data of ``factors``, a graph of the same structure as the analysed one
+        (same factor kinds, counts, variables, in the same order) but other measurements,
+        noise or kernel scales. Traceable: the factors' leaves may be JAX tracers, so a
+        loss can be differentiated through them (learned noise weights)."""
+        by_type = self._by_type(factors)
+        if list(by_type) != self._group_keys:
+            raise GraphError("the factors' kinds differ from the analysed graph's; build a new Problem")
+        out = []
+        for s, g, fs, rows in zip(self.structures, self.group_data, by_type.values(), self._group_rows):
+            f = concatenate_factors(fs)
+            if f.num_constraints != s.num:
+                raise GraphError(
+                    f"{s.factor_type.__name__}: {f.num_constraints} constraints where the analysed graph has {s.num}"
+                )
+            for var, r, t in zip(f.variables, rows, s.var_types):
+                ids = var.ids
+                if not isinstance(ids, jax.core.Tracer) and not np.array_equal(np.asarray(ids), self.var_ids[t][r]):
+                    raise GraphError(f"{s.factor_type.__name__}: the constraints connect other variables than analysed")
+            padded = jax.tree_util.tree_map(lambda leaf, _n=s.num, _c=s.capacity: _pad_leaf(leaf, _n, _c), f)
+            out.append(dataclasses.replace(g, factor=padded))
+        return out
+
+    def set_factors(self, factors: Sequence[Factor]) -> None:
+        """Replace the factors by ones of the same structure (see :meth:`group_data_for`)."""
+        self.group_data = self.group_data_for(factors)
 
     # --- layout and ordering ------------------------------------------------------------
     def _analyse_layout(self, ordering: str, fixed: Sequence[Variable], values: Values) -> None:
