@@ -304,6 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     __import__("jaxslam.vision._vo_cli", fromlist=["register"]).register(sub)
     __import__("jaxslam.eval._cli", fromlist=["register"]).register(sub)
     __import__("jaxslam.pipeline._cli", fromlist=["register"]).register(sub)
+    __import__("jaxslam.tune._cli", fromlist=["register"]).register(sub)
     return p
 
 

@@ -98,6 +98,9 @@ class LidarConfig:
     """Floor on the odometry factor's translation sigma (m)."""
     degenerate_sigma: float = 1.0
     """Sigma given to a degenerate direction (m or rad): down-weighted, not trusted."""
+    axis_weights: tuple[float, float] = (1.0, 1.0)
+    """Information multipliers of the factor's (rotation, translation) blocks, after
+    ``information_scale`` (sigmas divided by their square roots); learned by ``jaxslam tune``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,6 +122,9 @@ class VisionConfig:
     """A keyframe is registered when at least this many matches with LiDAR depth survive."""
     pixel_sigma: float = 1.0
     information_scale: float = 0.5
+    axis_weights: tuple[float, float] = (1.0, 1.0)
+    """Information multipliers of the factor's (rotation, translation) blocks, after
+    ``information_scale`` (sigmas divided by their square roots); learned by ``jaxslam tune``."""
     depth_radius_px: float = 12.0
     """LiDAR points projected within this radius of a feature give it depth (a local plane)."""
     max_depth: float = 20.0
@@ -170,6 +176,9 @@ class LoopConfig:
     information_scale: float = 0.01
     """Multiplies the loop registration's Hessian (chi^2 at ground truth ~6 with it on the
     simulated tunnel: submaps from two passes are less consistent than one scan-to-map)."""
+    axis_weights: tuple[float, float] = (1.0, 1.0)
+    """Information multipliers of the factor's (rotation, translation) blocks, after
+    ``information_scale`` (sigmas divided by their square roots); learned by ``jaxslam tune``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -238,6 +247,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
             if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
                 raise ConfigError(f"{where}.{k}: expected numbers, got {v!r}")
             v = tuple(v)
+            if k == "axis_weights" and not all(x > 0 for x in v):
+                raise ConfigError(f"{where}.{k}: weights must be positive, got {v!r}")
         elif isinstance(default, bool):
             if not isinstance(v, bool):
                 raise ConfigError(f"{where}.{k}: expected true/false, got {v!r}")

@@ -51,7 +51,7 @@ from ..measurements import Image, ImuSample, LidarScan, PoseStamped, PositionFix
 from ..solvers import IncrementalConfig, IncrementalSolver
 from ._config import PipelineConfig
 from ._imu import ImuBuffer, NavState, gravity_alignment, preintegrate_interval, propagate
-from ._lidar_frontend import LidarOdometry, ScanResult, information_for_factor
+from ._lidar_frontend import LidarOdometry, ScanResult, axis_weighted, information_for_factor
 from ._loop import LoopCloser
 from ._visual import DirectionMeasurement, KeyframeFeatures, VisualFrontend, VisualMeasurement
 
@@ -131,6 +131,8 @@ class Estimator:
         self.visual_edges: list[VisualMeasurement] = []
         self.direction_edges = 0
         """Scale-free visual factors added (no LiDAR depth)."""
+        self.graph: list[tuple[str, Any]] = []
+        """Every factor added, with its kind (see :meth:`_tag`)."""
         self.edges: list[tuple[str, int, int, np.ndarray, np.ndarray]] = []
         """Between factors added: (kind, i, j, measured T_i^-1 T_j, information)."""
         self.last_scan_t = -np.inf
@@ -151,6 +153,12 @@ class Estimator:
             from concurrent.futures import ThreadPoolExecutor
 
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxslam-vision")
+
+    def _tag(self, kind: str, factor: Any) -> Any:
+        """Keep every factor with its kind (``prior``, ``imu``, ``bias``, ``lidar``, ``vision``,
+        ``direction``, ``loop``): ``jaxslam tune`` re-weights the final graph by kind."""
+        self.graph.append((kind, factor))
+        return factor
 
     # --- input -------------------------------------------------------------------------------
     def feed(self, rec: Any) -> None:
@@ -302,14 +310,19 @@ class Estimator:
                 BiasVar(np.array([0])): pred.bias[None],
             }
             factors.append(
-                PriorFactor.create(Pose3Var(np.array([0])), _se3(pred.T[None]), Gaussian.diagonal(jnp.full(6, 1e-3)))
+                self._tag(
+                    "prior",
+                    PriorFactor.create(
+                        Pose3Var(np.array([0])), _se3(pred.T[None]), Gaussian.diagonal(jnp.full(6, 1e-3))
+                    ),
+                )
             )
             vs = 0.01 if self._still_start else 1.0
-            factors.append(PriorFactor.create(VelocityVar(np.array([0])), pred.v[None], Gaussian.isotropic(3, vs)))
+            v_prior = PriorFactor.create(VelocityVar(np.array([0])), pred.v[None], Gaussian.isotropic(3, vs))
+            factors.append(self._tag("prior", v_prior))
             bsig = np.array([icfg.acc_bias_sigma] * 3 + [icfg.gyro_bias_sigma if self._still_start else 0.05] * 3)
-            factors.append(
-                PriorFactor.create(BiasVar(np.array([0])), pred.bias[None], Gaussian.diagonal(jnp.asarray(bsig)))
-            )
+            b_prior = PriorFactor.create(BiasVar(np.array([0])), pred.bias[None], Gaussian.diagonal(jnp.asarray(bsig)))
+            factors.append(self._tag("prior", b_prior))
         else:
             prev = self.keyframes[-1]
             acc, gyro, dt, gap = self.imu.interval(prev.t, t)
@@ -319,17 +332,21 @@ class Estimator:
             pim = preintegrate_interval(acc, gyro, dt, self.params, self.state.bias)
             ids = (np.array([k - 1]), np.array([k]))
             factors.append(
-                ImuFactor.create(
-                    Pose3Var(ids[0]),
-                    VelocityVar(ids[0]),
-                    Pose3Var(ids[1]),
-                    VelocityVar(ids[1]),
-                    BiasVar(ids[0]),
-                    pim,
-                    self.params,
+                self._tag(
+                    "imu",
+                    ImuFactor.create(
+                        Pose3Var(ids[0]),
+                        VelocityVar(ids[0]),
+                        Pose3Var(ids[1]),
+                        VelocityVar(ids[1]),
+                        BiasVar(ids[0]),
+                        pim,
+                        self.params,
+                    ),
                 )
             )
-            factors.append(BiasRandomWalkFactor.create(BiasVar(ids[0]), BiasVar(ids[1]), t - prev.t, self.params))
+            bias_walk = BiasRandomWalkFactor.create(BiasVar(ids[0]), BiasVar(ids[1]), t - prev.t, self.params)
+            factors.append(self._tag("bias", bias_walk))
             values = {
                 Pose3Var(ids[1]): _se3(pred.T[None]),
                 VelocityVar(ids[1]): pred.v[None],
@@ -342,13 +359,19 @@ class Estimator:
                 and scan.registration.converged
             ):
                 T_rel = host.inverse(prev.scan.T_odom) @ scan.T_odom
-                info = information_for_factor(
-                    scan.registration.strong_information(), self.T_bl, self.cfg.lidar, self.cfg.lidar.information_scale
+                info = axis_weighted(
+                    information_for_factor(
+                        scan.registration.strong_information(),
+                        self.T_bl,
+                        self.cfg.lidar,
+                        self.cfg.lidar.information_scale,
+                    ),
+                    self.cfg.lidar.axis_weights,
                 )
                 self.edges.append(("lidar odometry", k - 1, k, T_rel, info))
                 if scan.last_degenerate < prev.scan.index:  # anchored along the axis throughout
                     self._lidar_rel[(k - 1, k)] = T_rel
-                factors.append(_between(k - 1, k, T_rel, info))
+                factors.append(self._tag("lidar", _between(k - 1, k, T_rel, info)))
                 # scan-to-map odometry does not drift while the LiDAR sees what pins the axis
                 # (the end wall): longer baselines to older keyframes keep that anchoring,
                 # which chained consecutive factors (independent errors) would lose
@@ -360,7 +383,7 @@ class Estimator:
                         continue
                     T_n = host.inverse(old.scan.T_odom) @ scan.T_odom
                     self.edges.append(("lidar odometry", k - n, k, T_n, info))
-                    factors.append(_between(k - n, k, T_n, info))
+                    factors.append(self._tag("lidar", _between(k - n, k, T_n, info)))
             elif self.lidar is not None:
                 self.warnings["lidar: keyframe without odometry factor"] += 1
         self.timing["imu"] += time.perf_counter() - tk
@@ -399,9 +422,8 @@ class Estimator:
         if self.loops is not None and scan is not None and k > 0:
             est = self._poses()
             for loop in self.loops.detect(k, self.keyframes, est):
-                factors.append(
-                    _between(loop.i, loop.j, loop.T, loop.information, robust=Cauchy(self.cfg.loop.cauchy_scale))
-                )
+                robust = Cauchy(self.cfg.loop.cauchy_scale)
+                factors.append(self._tag("loop", _between(loop.i, loop.j, loop.T, loop.information, robust=robust)))
                 self.edges.append(("loop closure", loop.i, loop.j, loop.T, loop.information))
         self.timing["loop"] += time.perf_counter() - tl
         ts = time.perf_counter()
@@ -441,7 +463,11 @@ class Estimator:
                 noise = Gaussian.diagonal(jnp.asarray([sr] * 3 + [sd] * 2))
                 ids = (Pose3Var(np.array([dm.i])), Pose3Var(np.array([dm.j])))
                 tbc = np.asarray(self.cfg.rig.body_T_camera)
-                out.append(RelativeDirectionFactor.create(*ids, dm.R, dm.u, tbc, noise, robust=Cauchy(1.0)))
+                out.append(
+                    self._tag(
+                        "direction", RelativeDirectionFactor.create(*ids, dm.R, dm.u, tbc, noise, robust=Cauchy(1.0))
+                    )
+                )
                 self.direction_edges += 1
                 kf.registered = True
                 self.keyframes[dm.i].registered = True
@@ -451,8 +477,9 @@ class Estimator:
                 if self._vo_scale != 1.0:
                     vm.T = vm.T.copy()
                     vm.T[:3, 3] *= self._vo_scale
-                out.append(_between(vm.i, vm.j, vm.T, vm.information))
-                self.edges.append(("visual odometry", vm.i, vm.j, vm.T, vm.information))
+                info = axis_weighted(vm.information, self.cfg.vision.axis_weights)
+                out.append(self._tag("vision", _between(vm.i, vm.j, vm.T, info)))
+                self.edges.append(("visual odometry", vm.i, vm.j, vm.T, info))
                 self.visual_edges.append(vm)
                 kf.registered = True
                 self.keyframes[vm.i].registered = True

@@ -49,6 +49,16 @@ def information_for_factor(info_lidar: np.ndarray, T_bl: np.ndarray, cfg: LidarC
     return 0.5 * (out + out.T)
 
 
+def axis_weighted(info: np.ndarray, weights: tuple[float, float]) -> np.ndarray:
+    """Information of a relative pose (tangent ``[rotation, translation]``) with its rotation
+    and translation blocks re-weighted: ``S info S``, ``S = diag(sqrt(w_rot) I, sqrt(w_trans) I)``
+    (each group's sigmas divided by ``sqrt(w)``). Learned by ``jaxslam tune``."""
+    if tuple(weights) == (1.0, 1.0):
+        return info
+    s = np.sqrt(np.repeat(np.asarray(weights, dtype=np.float64), 3))
+    return info * s[:, None] * s[None, :]
+
+
 class LidarOdometry:
     """Scan-to-map odometry (see the module docstring)."""
 

@@ -23,7 +23,7 @@ import numpy as np
 from ..lidar import IcpConfig, VoxelMap, VoxelMapConfig, register, voxel_downsample
 from ..lie import host
 from ._config import LidarConfig, LoopConfig
-from ._lidar_frontend import information_for_factor
+from ._lidar_frontend import axis_weighted, information_for_factor
 
 
 @dataclasses.dataclass
@@ -103,7 +103,10 @@ class LoopCloser:
         if reg.fitness < cfg.min_fitness or reg.rmse > cfg.max_rmse:
             self.rejected.append((i, k, f"fitness {reg.fitness:.2f} rmse {reg.rmse:.3f}"))
             return None
-        info = information_for_factor(reg.strong_information(), np.eye(4), self.lidar_cfg, cfg.information_scale)
+        info = axis_weighted(
+            information_for_factor(reg.strong_information(), np.eye(4), self.lidar_cfg, cfg.information_scale),
+            cfg.axis_weights,
+        )
         e = host.se3_log(host.inverse(reg.T) @ T_est)
         travelled = float(np.sum(np.linalg.norm(np.diff(poses[i : k + 1, :3, 3], axis=0), axis=1)))
         drift = max(cfg.drift_per_m * travelled, 0.02)

@@ -83,8 +83,11 @@ def run_recording(
     progress: Callable[[float, float], None] | None = None,
     plots: bool = True,
     max_seconds: float | None = None,
+    on_finish: Callable[[Estimator, dict[str, Any], Trajectory | None], None] | None = None,
 ) -> dict[str, Any]:
-    """Run the estimator over a recording and write the results folder; returns the metrics."""
+    """Run the estimator over a recording and write the results folder; returns the metrics.
+    ``on_finish(estimator, result, ground_truth)`` sees the finished estimator (its factor
+    graph: ``jaxslam tune`` re-weights it)."""
     from .. import eval as ev
 
     t_start = time.perf_counter()
@@ -146,6 +149,8 @@ def run_recording(
         gt = Trajectory(
             np.array([p.t for p in est.ground_truth]), SE3(jnp.asarray(np.stack([p.pose for p in est.ground_truth])))
         )
+    if on_finish is not None:
+        on_finish(est, res, gt)
     stats, sparse = mapping_statistics(est, poses)
     reproj = sparse.residuals_px if sparse is not None else np.zeros(0)
     if sparse is not None and len(sparse.points):

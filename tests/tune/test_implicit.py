@@ -1,4 +1,4 @@
-"""Gradients through the least-squares optimum (jaxslam.learn.DifferentiableSolver) against
+"""Gradients through the least-squares optimum (jaxslam.tune.DifferentiableSolver) against
 central finite differences of re-solved optima, on small graphs and on a pose graph of a few
 hundred poses; Gauss-Newton adjoint = exact adjoint where residuals vanish; unrolling."""
 
@@ -11,9 +11,9 @@ import pytest
 from jaxslam.core import Cauchy, Gaussian, Pose3Var, Values
 from jaxslam.errors import GraphError, SolverError
 from jaxslam.factors import BetweenFactor, PriorFactor
-from jaxslam.learn import DifferentiableSolver, ImplicitConfig
 from jaxslam.lie import SE3
 from jaxslam.sim import tunnel_pose_graph
+from jaxslam.tune import DifferentiableSolver, ImplicitConfig
 
 
 def _graph(length, robust=False, noise_free=False, seed=1):

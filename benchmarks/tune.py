@@ -1,0 +1,166 @@
+"""Learning noise weights from wrong ones (issue 7): gradient tuning vs random search.
+
+    python benchmarks/tune.py --json runs/tune.json
+    python benchmarks/tune.py --truth positions --json runs/tune_positions.json   # prism + lever arm
+
+Simulated tunnels (``--length`` m one way, out and back) are written once into ``--workdir``
+(``jaxslam simulate``) and reused. The starting configuration is deliberately wrong in the
+ways users report: LiDAR trusted ``--lidar-overtrust`` (30x) too much (its information
+scale) and IMU noise densities ``--imu-factor`` (10x) too small. Then:
+
+* **gradient**: ``jaxslam tune`` on the training seeds (``--rounds`` estimator runs per
+  seed, ``--steps`` Adam steps on adjoint gradients per round);
+* **random search**, the baseline, with the same estimator runs and the same number of
+  graph solves (``steps + 1`` log-uniform draws within 30x per round, best training loss
+  kept; :class:`jaxslam.tune.TuneConfig` ``search="random"``);
+* evaluation on held-out seeds and lighting that neither saw: the estimator run with the
+  wrong start, the tuned, the random-search and the hand-set default weights.
+
+Prints a table; ``--json`` writes ``{"heldout_ape_before", "heldout_ape_after",
+"heldout_ape_defaults", "random_search_ape", "train_seeds", "heldout_seeds",
+"estimator_runs", ...}`` (APE in metres: mean over the held-out recordings, per recording
+under ``heldout``). The defaults were hand-set while developing on seed 0 (another tunnel
+length); every recording here is new to them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+
+def recording(work: Path, seed: int, lighting: str, length: float) -> Path:
+    from jaxslam.cli import main as cli
+
+    bag = work / (f"seed{seed}.bag" if lighting == "uneven" else f"seed{seed}_{lighting}.bag")
+    if not bag.exists():
+        work.mkdir(parents=True, exist_ok=True)
+        args = ["simulate", "-o", str(bag), "--seed", str(seed), "--length", str(length), "--lighting", lighting, "-q"]
+        if cli(args) != 0:
+            raise SystemExit(f"simulation of {bag} failed")
+    return bag
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--train", type=int, nargs="+", default=[10, 11], help="training seeds (uneven light)")
+    ap.add_argument(
+        "--heldout", nargs="+", default=["12:uneven", "12:dark"], help="held-out recordings as SEED:LIGHTING"
+    )
+    ap.add_argument("--length", type=float, default=25.0)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--lidar-overtrust", type=float, default=30.0)
+    ap.add_argument("--imu-factor", type=float, default=0.1, help="multiplies the IMU noise densities")
+    ap.add_argument("--truth", choices=["poses", "positions"], default="poses")
+    ap.add_argument("--workdir", default="runs/bench_tune")
+    ap.add_argument("--json", metavar="PATH")
+    args = ap.parse_args()
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from jaxslam.pipeline import PipelineConfig, run_recording
+    from jaxslam.pipeline._config import find_rig, load_rig, save_config
+    from jaxslam.sim import SimConfig
+    from jaxslam.tune import TuneConfig, tune, weights_summary
+    from jaxslam.tune._tune import plot_loss
+
+    work = Path(args.workdir)
+    train = [recording(work, s, "uneven", args.length) for s in args.train]
+    held = []
+    for spec in args.heldout:
+        seed, light = spec.split(":")
+        held.append(recording(work, int(seed), light, args.length))
+    rig_path = find_rig(train[0])
+    defaults = PipelineConfig()
+    if rig_path is not None:
+        defaults = dataclasses.replace(defaults, rig=load_rig(rig_path))
+    wrong = defaults.replace(
+        lidar={"information_scale": defaults.lidar.information_scale * args.lidar_overtrust},
+        imu={"noise_scale": defaults.imu.noise_scale * args.imu_factor},
+    )
+    lever = SimConfig().prism
+    t_all = time.perf_counter()
+    results: dict[str, Any] = {}
+    for search in ("gradient", "random"):
+        tc = TuneConfig(
+            steps=args.steps, rounds=args.rounds, truth=args.truth, lever_arm=tuple(lever), search=search, seed=0
+        )
+        t0 = time.perf_counter()
+        rep = tune(train, wrong, tc, work / f"tune_{args.truth}_{search}", bar=lambda **kw: tqdm(**kw))
+        results[search] = rep
+        save_config(rep.config, work / f"weights_{args.truth}_{search}.yaml")
+        plot_loss(work / f"loss_{args.truth}_{search}.png", rep, args.steps)
+        print(f"{search}: {rep.estimator_runs} estimator runs, {time.perf_counter() - t0:.0f} s", flush=True)
+    configs = {
+        "before": wrong,
+        "after": results["gradient"].config,
+        "random": results["random"].config,
+        "defaults": defaults,
+    }
+    heldout_rows = []
+    eval_runs = 0
+    for bag in held:
+        row: dict[str, Any] = {"recording": bag.name}
+        for label, cfg in configs.items():
+            m = run_recording(bag, work / f"heldout_{args.truth}" / label / bag.stem, cfg, plots=False)
+            eval_runs += 1
+            row[label] = {
+                "ape_m": m.get("ape_rmse_m"),
+                "loop_error_m": m.get("loop_error_m"),
+                "registered": f"{m['registered_frames']}/{m['total_frames']}",
+            }
+            print(f"held out {bag.name:<22} {label:<9} APE {m.get('ape_rmse_m'):.4f} m", flush=True)
+        heldout_rows.append(row)
+
+    def mean(label: str) -> float:
+        return float(np.mean([r[label]["ape_m"] for r in heldout_rows]))
+
+    g, r = results["gradient"], results["random"]
+    out = {
+        "heldout_ape_before": mean("before"),
+        "heldout_ape_after": mean("after"),
+        "heldout_ape_defaults": mean("defaults"),
+        "random_search_ape": mean("random"),
+        "train_seeds": args.train,
+        "heldout_seeds": args.heldout,
+        "estimator_runs": g.estimator_runs,
+        "random_search_estimator_runs": r.estimator_runs,
+        "evaluation_runs": eval_runs,
+        "truth": args.truth,
+        "lever_arm": list(lever) if args.truth == "positions" else None,
+        "start": {"lidar_overtrust": args.lidar_overtrust, "imu_noise_factor": args.imu_factor},
+        "heldout": heldout_rows,
+        "weights": {k: weights_summary(c) for k, c in configs.items()},
+        "gradient_rounds": g.rounds,
+        "random_rounds": r.rounds,
+        "time_s": time.perf_counter() - t_all,
+    }
+    print()
+    print(f"{'held-out APE (mean m)':<34}{'value':>10}")
+    for k in ("heldout_ape_before", "heldout_ape_after", "heldout_ape_defaults", "random_search_ape"):
+        print(f"{k:<34}{out[k]:>10.4f}")
+    imp = 1 - out["heldout_ape_after"] / out["heldout_ape_before"]
+    print(f"improvement from the wrong start: {100 * imp:.1f} % (goal >= 30 %)")
+    print(
+        f"after vs defaults: {out['heldout_ape_after']:.4f} vs {out['heldout_ape_defaults']:.4f}; "
+        f"vs random search: {out['random_search_ape']:.4f}"
+    )
+    for rr in g.rounds:
+        print(
+            f"gradient round: graph RMSE {rr['graph_rmse_before_m']:.4f} -> {rr['graph_rmse_after_m']:.4f} m, "
+            f"forward {rr['forward_s']:.1f} s, backward {rr['backward_s']:.1f} s"
+        )
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(out, indent=2, default=str) + "\n")
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

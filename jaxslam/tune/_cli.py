@@ -1,0 +1,85 @@
+"""``jaxslam tune RECORDING... -o weights.yaml [--holdout RECORDING...]``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import ConfigError
+
+
+def register(subparsers) -> None:
+    t = subparsers.add_parser(
+        "tune",
+        help="learn the estimator's relative noise weights from recordings with surveyed ground truth",
+        description=(
+            "Runs the estimator on the training recordings, then learns one log-sigma multiplier per "
+            "factor kind and axis group (IMU, bias walk, LiDAR/vision/loop rotation and translation) "
+            "by gradients through the solver's optimum against the ground truth; repeats for --rounds. "
+            "Writes a configuration for `jaxslam run --config`, a loss curve PNG and a JSON report."
+        ),
+    )
+    t.add_argument("recordings", nargs="+", help="training recordings (with ground truth poses or prism fixes)")
+    t.add_argument("-o", "--output", required=True, help="the learned configuration (YAML)")
+    t.add_argument("--holdout", nargs="*", default=[], help="recordings to evaluate before/after (never trained on)")
+    t.add_argument("--config", metavar="YAML", help="starting configuration (default: the built-in defaults)")
+    t.add_argument("--rig", metavar="YAML", help="rig calibration (default: <first recording>.rig.yaml)")
+    t.add_argument("--rounds", type=int, default=2, help="estimator runs per training recording (default 2)")
+    t.add_argument("--steps", type=int, default=40, help="gradient steps per round (default 40)")
+    t.add_argument("--lr", type=float, default=0.15, help="Adam step on the log multipliers (default 0.15)")
+    t.add_argument(
+        "--truth",
+        choices=["auto", "poses", "positions"],
+        default="auto",
+        help="ground truth: full poses, total-station prism positions, or auto (poses when present)",
+    )
+    t.add_argument(
+        "--lever-arm",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "Z"),
+        default=(0.0, 0.0, 0.0),
+        help="the prism's position in the body frame (m), with --truth positions",
+    )
+    t.add_argument("--workdir", help="where the estimator runs go (default: <output stem>_runs/)")
+    t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(func=cmd_tune)
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from tqdm import tqdm
+
+    from ..pipeline._config import PipelineConfig, find_rig, load_config, load_rig, save_config
+    from ._tune import TuneConfig, plot_loss, tune, weights_summary, write_report
+
+    if args.rounds < 1 or args.steps < 0:
+        raise ConfigError("--rounds must be >= 1 and --steps >= 0")
+    out = Path(args.output)
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise ConfigError(f"--output must be a .yaml file, got {out}")
+    for r in [*args.recordings, *args.holdout]:
+        if not Path(r).exists():
+            raise ConfigError(f"no such recording: {r}")
+    cfg = load_config(args.config) if args.config else PipelineConfig()
+    rig = args.rig or (find_rig(args.recordings[0]) if not args.config else None)
+    if rig:
+        cfg = dataclasses.replace(cfg, rig=load_rig(rig))
+    tcfg = TuneConfig(
+        steps=args.steps, learning_rate=args.lr, rounds=args.rounds, truth=args.truth, lever_arm=tuple(args.lever_arm)
+    )
+    work = Path(args.workdir) if args.workdir else out.with_name(out.stem + "_runs")
+    bar = None if args.quiet else (lambda **kw: tqdm(**kw))
+    report = tune(args.recordings, cfg, tcfg, work, holdout=args.holdout, bar=bar)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_config(report.config, out)
+    png = out.with_suffix(".loss.png")
+    plot_loss(png, report, tcfg.steps)
+    rep = out.with_suffix(".report.json")
+    write_report(rep, report)
+    print(f"wrote {out} (use: jaxslam run REC -o DIR --config {out}), {png.name}, {rep.name}")
+    for k, v in weights_summary(report.config).items():
+        print(f"  {k}: {v}")
+    print(f"{report.estimator_runs} estimator runs in {report.time_s:.0f} s")
+    return 0

@@ -1,0 +1,449 @@
+"""``jaxslam tune``: learn the estimator's relative noise weights from surveyed trajectories.
+
+Data flow (one *round*; ``rounds`` repeat it, since the front end's gates depend on the
+weights)::
+
+    training recordings ──Estimator (current config)──▶ final factor graph, every factor
+        tagged by kind (imu, bias, lidar, vision, loop, prior), + its optimum
+        + ground truth at the keyframes: full poses, or total-station prism positions
+          (interpolated to the keyframe times; the prism sits at a lever arm on the body)
+    theta = log sigma multipliers per weight group ──factor_fn──▶ re-weighted graph
+        ──DifferentiableSolver (optimum + adjoint gradient)──▶ loss: mean squared error of
+          the SE(3)-aligned prism/body positions (APE², the alignment held fixed: by the
+          envelope theorem that is the exact gradient of the aligned loss)
+        ──Adam on theta (all sequences: a loop that reuses the compiled kernels)──▶ theta
+    theta ──apply_weights──▶ a new PipelineConfig (``imu.noise_scale``, the rig's bias random
+        walks, ``{lidar,vision,loop}.axis_weights``) ──▶ next round / weights.yaml
+
+Only relative weights are learned (SPEC §6: scaling every sigma by one factor leaves the
+optimum unchanged): after every step the mean log multiplier is removed. Held-out
+recordings are run with the starting and the learned configuration and their APE reported;
+they never enter the loss.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..core import Factor, Gaussian, Pose3Var, Values
+from ..errors import ConfigError, InputFormatError, SolverError
+from ..lie import SE3
+from ..solvers._problem import concatenate_factors
+from ._implicit import DifferentiableSolver
+
+GROUPS: tuple[str, ...] = (
+    "imu",
+    "bias",
+    "lidar.rotation",
+    "lidar.translation",
+    "vision.rotation",
+    "vision.translation",
+    "loop.rotation",
+    "loop.translation",
+)
+"""Weight groups: one log-sigma multiplier each (factor kind and axis group)."""
+
+_KIND_GROUPS = {
+    "imu": ("imu",),
+    "bias": ("bias",),
+    "lidar": ("lidar.rotation", "lidar.translation"),
+    "vision": ("vision.rotation", "vision.translation"),
+    "loop": ("loop.rotation", "loop.translation"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    steps: int = 40
+    """Adam steps per round."""
+    learning_rate: float = 0.15
+    """Adam step on the log-sigma multipliers."""
+    rounds: int = 2
+    """Estimator runs per training recording: after each, the graphs are re-captured with
+    the weights learned so far (the front end's gates depend on them)."""
+    max_log_change: float = float(np.log(100.0))
+    """Bound on each log multiplier per round."""
+    truth: str = "auto"
+    """``poses`` (full ground-truth poses), ``positions`` (total-station prism fixes and
+    ``lever_arm``), or ``auto`` (poses when the recording has them)."""
+    lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The prism's position in the body frame (m), for ``positions``."""
+    max_fix_gap: float = 0.5
+    """A keyframe gets a surveyed position when fixes bracket it within this (s)."""
+    search: str = "gradient"
+    """``gradient`` (Adam on adjoint gradients) or ``random`` (the baseline: ``steps + 1``
+    log-uniform draws within ``random_range`` of the current weights, the same graph
+    solves and estimator runs, the best by training loss kept)."""
+    random_range: float = float(np.log(30.0))
+    seed: int = 0
+
+
+@dataclasses.dataclass
+class Captured:
+    """One training recording's final factor graph and truth at its keyframes."""
+
+    name: str
+    kinds: dict[str, Factor]
+    fixed: list[Factor]
+    values: Values
+    keyframes: np.ndarray  # (M,) indices of keyframes with truth
+    truth: np.ndarray  # (M, 3) surveyed points (prism or body origin)
+    lever_arm: np.ndarray  # (3,)
+    truth_kind: str
+    ape_m: float | None = None
+
+
+def _interp_truth(
+    kf_times: np.ndarray, t: np.ndarray, xyz: np.ndarray, max_gap: float
+) -> tuple[np.ndarray, np.ndarray]:
+    order = np.argsort(t)
+    t, xyz = t[order], xyz[order]
+    j = np.searchsorted(t, kf_times)
+    ok = (j > 0) & (j < len(t))
+    jj = np.clip(j, 1, max(len(t) - 1, 1))
+    t0, t1 = t[jj - 1], t[jj]
+    ok &= (t1 - t0) <= max_gap
+    w = np.where(t1 > t0, (kf_times - t0) / np.where(t1 > t0, t1 - t0, 1.0), 0.0)[:, None]
+    pts = (1 - w) * xyz[jj - 1] + w * xyz[jj]
+    return np.nonzero(ok)[0], pts[ok]
+
+
+def capture(est: Any, res: dict[str, Any], gt: Any, cfg: TuneConfig, name: str) -> Captured:
+    """The estimator's final graph, grouped by kind, and the truth at its keyframes."""
+    by_kind: dict[str, list[Factor]] = {}
+    fixed: list[Factor] = []
+    for kind, f in est.graph:
+        (by_kind.setdefault(kind, []) if kind in _KIND_GROUPS else fixed).append(f)
+    kinds = {k: concatenate_factors(v) for k, v in by_kind.items() if v}
+    times = np.asarray(res["times"])
+    mode = cfg.truth
+    if mode == "auto":
+        mode = "poses" if gt is not None else "positions"
+    if mode == "poses":
+        if gt is None:
+            raise InputFormatError("no ground-truth poses in the recording (try --truth positions)", name)
+        gt_t = np.asarray(gt.timestamps)
+        gt_xyz = np.asarray(gt.poses.params)[:, 4:]
+        lever = np.zeros(3)
+    elif mode == "positions":
+        if not est.fixes:
+            raise InputFormatError("no total-station positions in the recording", name)
+        gt_t = np.array([f.t for f in est.fixes])
+        gt_xyz = np.stack([f.xyz for f in est.fixes])
+        lever = np.asarray(cfg.lever_arm, dtype=np.float64)
+    else:
+        raise ConfigError(f"truth must be auto, poses or positions, got {cfg.truth!r}")
+    idx, pts = _interp_truth(times, gt_t, gt_xyz, cfg.max_fix_gap)
+    if len(idx) < 3:
+        raise InputFormatError(f"only {len(idx)} keyframes have ground truth (need 3)", name)
+    return Captured(name, kinds, fixed, est.solver.estimate(), idx, pts, lever, mode)
+
+
+def factor_fn_for(run: Captured) -> Callable[[Array_], list[Factor]]:
+    """``theta (len(GROUPS),) -> factors``: each weighted kind's square-root information
+    multiplied by ``exp(-theta)`` on its group's residual components (sigma x exp(theta))."""
+    index = {g: i for i, g in enumerate(GROUPS)}
+
+    def build(theta: Array_) -> list[Factor]:
+        out = list(run.fixed)
+        for kind, f in run.kinds.items():
+            groups = _KIND_GROUPS[kind]
+            if len(groups) == 1:
+                s = jnp.full(f.noise.dim, jnp.exp(-theta[index[groups[0]]]))
+            else:
+                rot, trans = (jnp.exp(-theta[index[g]]) for g in groups)
+                s = jnp.concatenate([jnp.full(3, rot), jnp.full(3, trans)])
+            out.append(f.with_noise(Gaussian(f.noise.sqrt_info * s[None, None, :])))
+        return out
+
+    return build
+
+
+Array_ = Any
+
+
+def aligned_position_loss(x: Values, run: Captured) -> jax.Array:
+    """Mean squared distance between the surveyed points and the estimate's (body origin +
+    rotated lever arm), after the best rigid alignment (held fixed for the gradient)."""
+    P = x.params(Pose3Var)[run.keyframes]
+    pts = SE3(P).act(jnp.broadcast_to(jnp.asarray(run.lever_arm), (P.shape[0], 3)))
+    R, t = _kabsch(jax.lax.stop_gradient(pts), jnp.asarray(run.truth))
+    err = pts @ R.T + t[None, :] - jnp.asarray(run.truth)
+    return jnp.mean(jnp.sum(err * err, axis=1))
+
+
+def _kabsch(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Rotation and translation minimising ``|R a + t - b|^2`` (Umeyama without scale)."""
+    ma, mb = a.mean(0), b.mean(0)
+    u, _, vt = jnp.linalg.svd((b - mb[None, :]).T @ (a - ma[None, :]))
+    d = jnp.sign(jnp.linalg.det(u @ vt))
+    R = u @ jnp.diag(jnp.array([1.0, 1.0, d])) @ vt
+    return R, mb - R @ ma
+
+
+@dataclasses.dataclass
+class GraphTuneResult:
+    theta: np.ndarray
+    history: list[float]
+    grad_norms: list[float]
+    forward_s: float
+    backward_s: float
+
+
+def tune_graphs(
+    runs: Sequence[Captured],
+    cfg: TuneConfig,
+    progress: Callable[[int, float], None] | None = None,
+) -> GraphTuneResult:
+    """Adam on the log-sigma multipliers against the captured graphs (``theta = 0``: the
+    weights they were captured with)."""
+    theta = jnp.zeros(len(GROUPS))
+    present = np.zeros(len(GROUPS), bool)
+    for r in runs:
+        for k in r.kinds:
+            for g in _KIND_GROUPS[k]:
+                present[GROUPS.index(g)] = True
+    solvers = [DifferentiableSolver(factor_fn_for(r), r.values, theta) for r in runs]
+    if cfg.search == "random":
+        return _random_search(runs, solvers, present, cfg, progress)
+    if cfg.search != "gradient":
+        raise ConfigError(f"search must be gradient or random, got {cfg.search!r}")
+    m = jnp.zeros_like(theta)
+    v = jnp.zeros_like(theta)
+    b1, b2, eps = 0.9, 0.999, 1e-8
+    history: list[float] = []
+    gnorms: list[float] = []
+    fwd = bwd = 0.0
+    mask = jnp.asarray(present, dtype=jnp.float64)
+    for step in range(cfg.steps + 1):
+        total = 0.0
+        grad = jnp.zeros_like(theta)
+        for r, ds in zip(runs, solvers):
+            lv, g = jax.value_and_grad(lambda th, r=r, ds=ds: aligned_position_loss(ds(th), r))(theta)
+            total += float(lv) / len(runs)
+            grad = grad + g / len(runs)
+            fwd += ds.forward_time_s
+            bwd += ds.backward.time_s
+        history.append(total)
+        gnorms.append(float(jnp.linalg.norm(grad)))
+        if progress is not None:
+            progress(step, total)
+        if step == cfg.steps:
+            break
+        grad = grad * mask
+        m = b1 * m + (1 - b1) * grad
+        v = b2 * v + (1 - b2) * grad * grad
+        mh = m / (1 - b1 ** (step + 1))
+        vh = v / (1 - b2 ** (step + 1))
+        theta = theta - cfg.learning_rate * mh / (jnp.sqrt(vh) + eps)
+        theta = jnp.clip(theta, -cfg.max_log_change, cfg.max_log_change)
+        # relative weights: remove the common scale of the groups present
+        theta = (theta - jnp.sum(theta * mask) / jnp.sum(mask)) * mask
+    return GraphTuneResult(np.asarray(theta), history, gnorms, fwd, bwd)
+
+
+def _random_search(
+    runs: Sequence[Captured],
+    solvers: list[DifferentiableSolver],
+    present: np.ndarray,
+    cfg: TuneConfig,
+    progress: Callable[[int, float], None] | None,
+) -> GraphTuneResult:
+    rng = np.random.default_rng(cfg.seed)
+    best, best_loss = np.zeros(len(GROUPS)), np.inf
+    history: list[float] = []
+    fwd = 0.0
+    for step in range(cfg.steps + 1):
+        cand = np.zeros(len(GROUPS)) if step == 0 else rng.uniform(-cfg.random_range, cfg.random_range, len(GROUPS))
+        cand = np.where(present, cand - cand[present].mean(), 0.0)
+        total = 0.0
+        for r, ds in zip(runs, solvers):
+            try:
+                total += float(aligned_position_loss(ds.solve(jnp.asarray(cand)), r)) / len(runs)
+            except SolverError:  # weights so wrong that the graph does not converge
+                total = np.inf
+                ds.reset()
+                break
+            fwd += ds.forward_time_s
+        if total < best_loss:
+            best, best_loss = cand, total
+        history.append(best_loss)
+        if progress is not None:
+            progress(step, best_loss)
+    return GraphTuneResult(best, history, [], fwd, 0.0)
+
+
+def apply_weights(config: Any, theta: np.ndarray) -> Any:
+    """A PipelineConfig with the learned multipliers folded in (sigma x exp(theta))."""
+    th = dict(zip(GROUPS, np.asarray(theta, dtype=np.float64)))
+    rig = config.rig
+    e = {k: float(np.exp(v)) for k, v in th.items()}
+    new = config.replace(
+        imu={"noise_scale": config.imu.noise_scale * e["imu"]},
+        lidar={"axis_weights": _aw(config.lidar.axis_weights, e["lidar.rotation"], e["lidar.translation"])},
+        vision={"axis_weights": _aw(config.vision.axis_weights, e["vision.rotation"], e["vision.translation"])},
+        loop={"axis_weights": _aw(config.loop.axis_weights, e["loop.rotation"], e["loop.translation"])},
+    )
+    return dataclasses.replace(
+        new,
+        rig=dataclasses.replace(
+            rig,
+            accelerometer_random_walk=rig.accelerometer_random_walk * e["bias"],
+            gyroscope_random_walk=rig.gyroscope_random_walk * e["bias"],
+        ),
+    )
+
+
+def _aw(old: tuple[float, float], s_rot: float, s_trans: float) -> tuple[float, float]:
+    # information weight = 1 / sigma multiplier^2
+    return (float(old[0] / s_rot**2), float(old[1] / s_trans**2))
+
+
+def weights_summary(config: Any) -> dict[str, Any]:
+    """The tunable weights of a configuration (for reports)."""
+    return {
+        "imu.noise_scale": config.imu.noise_scale,
+        "rig.accelerometer_random_walk": config.rig.accelerometer_random_walk,
+        "rig.gyroscope_random_walk": config.rig.gyroscope_random_walk,
+        "lidar.axis_weights": list(config.lidar.axis_weights),
+        "vision.axis_weights": list(config.vision.axis_weights),
+        "loop.axis_weights": list(config.loop.axis_weights),
+    }
+
+
+@dataclasses.dataclass
+class TuneReport:
+    config: Any
+    history: list[float]
+    rounds: list[dict[str, Any]]
+    heldout: list[dict[str, Any]]
+    estimator_runs: int
+    time_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "weights": weights_summary(self.config),
+            "loss_history": self.history,
+            "rounds": self.rounds,
+            "heldout": self.heldout,
+            "estimator_runs": self.estimator_runs,
+            "time_s": self.time_s,
+        }
+
+
+def tune(
+    recordings: Sequence[str | Path],
+    config: Any,
+    cfg: TuneConfig,
+    workdir: str | Path,
+    holdout: Sequence[str | Path] = (),
+    log: Callable[[str], None] = print,
+    bar: Callable[..., Any] | None = None,
+) -> TuneReport:
+    """Rounds of (estimator runs on ``recordings`` → graph tuning); then ``holdout`` runs
+    with the starting and the learned configuration. ``bar(total=..., desc=...)`` makes a
+    progress bar (tqdm's signature)."""
+    from ..pipeline._run import run_recording
+
+    t0 = time.perf_counter()
+    work = Path(workdir)
+    start = config
+    history: list[float] = []
+    rounds: list[dict[str, Any]] = []
+    runs_done = 0
+    for rnd in range(cfg.rounds):
+        caps: list[Captured] = []
+        for path in recordings:
+            holder: list[Captured] = []
+            name = Path(path).stem
+
+            def keep(est: Any, res: dict[str, Any], gt: Any, _n: str = name, _h: list = holder) -> None:
+                _h.append(capture(est, res, gt, cfg, _n))
+
+            m = run_recording(path, work / f"round{rnd}" / name, config, plots=False, on_finish=keep)
+            runs_done += 1
+            holder[0].ape_m = m.get("ape_rmse_m")
+            caps.append(holder[0])
+            log(f"round {rnd + 1}: {name}: {len(holder[0].keyframes)} keyframes with truth, APE {_f(m)}")
+        pbar = bar(total=cfg.steps + 1, desc=f"tune round {rnd + 1}") if bar is not None else None
+
+        def progress(step: int, loss: float, _p: Any = pbar) -> None:
+            if _p is not None:
+                _p.update(1)
+                _p.set_postfix(loss=f"{np.sqrt(max(loss, 0.0)):.4f} m")
+
+        try:
+            res = tune_graphs(caps, cfg, progress)
+        finally:
+            if pbar is not None:
+                pbar.close()
+        history += res.history
+        config = apply_weights(config, res.theta)
+        rounds.append(
+            {
+                "train_ape_m": {c.name: c.ape_m for c in caps},
+                "graph_rmse_before_m": float(np.sqrt(res.history[0])),
+                "graph_rmse_after_m": float(np.sqrt(res.history[-1])),
+                "theta": dict(zip(GROUPS, res.theta.tolist())),
+                "forward_s": res.forward_s,
+                "backward_s": res.backward_s,
+                "truth": caps[0].truth_kind,
+            }
+        )
+        log(
+            f"round {rnd + 1}: aligned RMSE on the training graphs {np.sqrt(res.history[0]):.4f} -> "
+            f"{np.sqrt(res.history[-1]):.4f} m"
+        )
+    heldout = []
+    for path in holdout:
+        name = Path(path).stem
+        row: dict[str, Any] = {"recording": str(path)}
+        for label, c in (("before", start), ("after", config)):
+            m = run_recording(path, work / "heldout" / label / name, c, plots=False)
+            runs_done += 1
+            row[f"ape_{label}_m"] = m.get("ape_rmse_m")
+            row[f"registered_{label}"] = m.get("registered_frames")
+        log(f"held out {name}: APE {_g(row['ape_before_m'])} -> {_g(row['ape_after_m'])} m")
+        heldout.append(row)
+    return TuneReport(config, history, rounds, heldout, runs_done, time.perf_counter() - t0)
+
+
+def _f(m: dict[str, Any]) -> str:
+    return _g(m.get("ape_rmse_m")) + " m"
+
+
+def _g(x: Any) -> str:
+    return "n/a" if x is None else f"{x:.4f}"
+
+
+def plot_loss(path: str | Path, report: TuneReport, steps_per_round: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    h = np.sqrt(np.maximum(np.asarray(report.history), 0.0))
+    ax.plot(np.arange(len(h)), h, lw=1.5)
+    for r in range(1, len(report.rounds)):
+        ax.axvline(r * (steps_per_round + 1) - 0.5, color="grey", ls=":", lw=1)
+    ax.set_xlabel("step (dotted: a new round, graphs re-captured by the estimator)")
+    ax.set_ylabel("aligned position RMSE on training graphs (m)")
+    ax.set_title("jaxslam tune: training loss")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_report(path: str | Path, report: TuneReport) -> None:
+    Path(path).write_text(json.dumps(report.to_json(), indent=2) + "\n")

@@ -1,0 +1,177 @@
+"""``jaxslam tune``: weight groups, the aligned position loss (full poses and prism + lever
+arm), graph tuning from wrong weights checked on a held-out graph, the config mapping, and
+the CLI end to end on a short simulated recording."""
+
+from __future__ import annotations
+
+import json
+import types
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam.cli import main as cli
+from jaxslam.core import Cauchy, Gaussian, Pose3Var, Values
+from jaxslam.factors import BetweenFactor, PriorFactor
+from jaxslam.lie import SE3
+from jaxslam.pipeline import PipelineConfig, load_config
+from jaxslam.sim import tunnel_pose_graph
+from jaxslam.tune import GROUPS, Captured, TuneConfig, aligned_position_loss, apply_weights, tune_graphs
+from jaxslam.tune._tune import _interp_truth, factor_fn_for
+
+
+def _captured(seed: int, odo_overtrust: float, lever=(0.0, 0.0, 0.0)) -> Captured:
+    """A tunnel pose graph whose odometry ('lidar') is trusted ``odo_overtrust`` x too much
+    in translation, its loops ('loop') at their true sigmas; truth = prism positions."""
+    g = tunnel_pose_graph(length=30.0, step=0.5, seed=seed, odom_sigma=(0.002, 0.02), loop_sigma=(0.005, 0.01))
+    n = len(g.ground_truth)
+    odo = ~g.is_loop
+    sig_odo = np.array([0.002] * 3 + [0.02 / odo_overtrust] * 3)
+    sig_loop = np.array([0.005] * 3 + [0.01] * 3)
+    lidar = BetweenFactor.create(
+        Pose3Var(g.edges_i[odo]),
+        Pose3Var(g.edges_j[odo]),
+        SE3(jnp.asarray(g.measured[odo])),
+        Gaussian.diagonal(jnp.asarray(sig_odo), n=int(odo.sum())),
+    )
+    loop = BetweenFactor.create(
+        Pose3Var(g.edges_i[g.is_loop]),
+        Pose3Var(g.edges_j[g.is_loop]),
+        SE3(jnp.asarray(g.measured[g.is_loop])),
+        Gaussian.diagonal(jnp.asarray(sig_loop), n=int(g.is_loop.sum())),
+        robust=Cauchy(1.0),
+    )
+    prior = PriorFactor.create(
+        Pose3Var(np.array([0])), SE3(jnp.asarray(g.ground_truth[:1])), Gaussian.diagonal(jnp.full(6, 1e-3))
+    )
+    gt = SE3(jnp.asarray(g.ground_truth))
+    truth = np.asarray(gt.act(jnp.broadcast_to(jnp.asarray(lever, dtype=jnp.float64), (n, 3))))
+    # the survey lives in its own frame: a rigid motion away from the estimate's
+    T = SE3.exp(jnp.array([0.1, -0.2, 0.3, 5.0, -3.0, 1.0]))
+    truth = np.asarray(T.act(jnp.asarray(truth)))
+    values = Values.create({Pose3Var(np.arange(n)): gt})
+    return Captured(
+        f"seed{seed}", {"lidar": lidar, "loop": loop}, [prior], values, np.arange(n), truth, np.asarray(lever), "x"
+    )
+
+
+def test_interpolated_truth_skips_gaps() -> None:
+    t = np.array([0.0, 0.2, 0.4, 2.0, 2.2])
+    xyz = np.stack([t, 2 * t, np.zeros(5)], axis=1)
+    idx, pts = _interp_truth(np.array([-0.1, 0.1, 0.3, 1.0, 2.1, 3.0]), t, xyz, max_gap=0.5)
+    np.testing.assert_array_equal(idx, [1, 2, 4])
+    np.testing.assert_allclose(pts[:, 0], [0.1, 0.3, 2.1])
+    np.testing.assert_allclose(pts[:, 1], [0.2, 0.6, 4.2])
+
+
+def test_aligned_loss_is_zero_at_truth_and_its_gradient_matches_differences() -> None:
+    run = _captured(0, 1.0, lever=(0.1, 0.0, 0.55))
+    assert float(aligned_position_loss(run.values, run)) < 1e-20  # alignment recovers the frame
+    fn = factor_fn_for(run)
+    from jaxslam.tune import DifferentiableSolver
+
+    ds = DifferentiableSolver(fn, run.values, jnp.zeros(len(GROUPS)))
+    theta = jnp.array([0.0, 0.0, 0.3, -0.2, 0.0, 0.0, 0.1, 0.4])
+    grad = jax.grad(lambda th: aligned_position_loss(ds(th), run))(theta)
+    assert float(jnp.abs(grad[0])) == 0.0 and float(jnp.abs(grad[4])) == 0.0  # kinds absent here
+    h = 1e-5
+    for i in (2, 3, 6, 7):
+        e = jnp.zeros(len(GROUPS)).at[i].set(h)
+        fd = (
+            float(aligned_position_loss(ds.solve(theta + e), run))
+            - float(aligned_position_loss(ds.solve(theta - e), run))
+        ) / (2 * h)
+        assert abs(float(grad[i]) - fd) <= 1e-5 * float(jnp.max(jnp.abs(grad))), (i, float(grad[i]), fd)
+
+
+def test_tuning_from_wrong_weights_helps_a_held_out_graph() -> None:
+    train = [_captured(1, 30.0, lever=(0.0, 0.0, 0.55))]
+    res = tune_graphs(train, TuneConfig(steps=25, learning_rate=0.2))
+    assert res.history[-1] < 0.7 * res.history[0]
+    th = res.theta
+    # the over-trusted odometry translation gets larger sigmas relative to the loops'
+    assert th[GROUPS.index("lidar.translation")] > th[GROUPS.index("loop.translation")]
+    assert abs(float(np.sum(th))) < 1e-9  # relative weights only
+    held = _captured(2, 30.0, lever=(0.0, 0.0, 0.55))
+    from jaxslam.tune import DifferentiableSolver
+
+    ds = DifferentiableSolver(factor_fn_for(held), held.values, jnp.zeros(len(GROUPS)))
+    before = float(aligned_position_loss(ds.solve(jnp.zeros(len(GROUPS))), held))
+    after = float(aligned_position_loss(ds.solve(jnp.asarray(th)), held))
+    assert after < 0.8 * before, (before, after)
+
+
+def test_random_search_keeps_the_best_draw() -> None:
+    train = [_captured(1, 30.0)]
+    res = tune_graphs(train, TuneConfig(steps=6, search="random"))
+    assert res.history[0] >= res.history[-1]
+    assert all(a >= b for a, b in zip(res.history, res.history[1:]))
+
+
+def test_apply_weights_maps_groups_to_the_config() -> None:
+    cfg = PipelineConfig()
+    assert apply_weights(cfg, np.zeros(len(GROUPS))) == cfg
+    th = np.zeros(len(GROUPS))
+    th[GROUPS.index("imu")] = np.log(2.0)
+    th[GROUPS.index("bias")] = np.log(3.0)
+    th[GROUPS.index("lidar.translation")] = np.log(2.0)  # sigma x2: information / 4
+    th[GROUPS.index("loop.rotation")] = -np.log(10.0)
+    out = apply_weights(cfg, th)
+    assert out.imu.noise_scale == pytest.approx(2.0 * cfg.imu.noise_scale)
+    assert out.rig.gyroscope_random_walk == pytest.approx(3.0 * cfg.rig.gyroscope_random_walk)
+    assert out.lidar.axis_weights == pytest.approx((1.0, 0.25))
+    assert out.loop.axis_weights == pytest.approx((100.0, 1.0))
+    assert out.vision.axis_weights == (1.0, 1.0)
+
+
+def test_captures_positions_with_a_lever_arm() -> None:
+    from jaxslam.measurements import PositionFix
+    from jaxslam.tune._tune import capture
+
+    run = _captured(0, 1.0)
+    fixes = [PositionFix(float(t), np.array([t, 0.0, 1.0])) for t in np.arange(0.0, 10.0, 0.2)]
+    est = types.SimpleNamespace(
+        graph=[("prior", run.fixed[0]), ("lidar", run.kinds["lidar"]), ("loop", run.kinds["loop"])],
+        fixes=fixes,
+        solver=types.SimpleNamespace(estimate=lambda: run.values),
+    )
+    res = {"times": np.arange(len(run.truth)) * 0.5}
+    cap = capture(est, res, None, TuneConfig(truth="auto", lever_arm=(0.0, 0.0, 0.55)), "x")
+    assert cap.truth_kind == "positions"
+    np.testing.assert_allclose(cap.lever_arm, [0.0, 0.0, 0.55])
+    assert cap.keyframes.max() * 0.5 <= 9.8 + 1e-9
+    np.testing.assert_allclose(cap.truth[:, 0], res["times"][cap.keyframes])
+    with pytest.raises(Exception, match="no ground-truth poses"):
+        capture(est, res, None, TuneConfig(truth="poses"), "x")
+
+
+def test_cli_refuses_bad_input(tmp_path, capsys) -> None:
+    assert cli(["tune", str(tmp_path / "missing.bag"), "-o", str(tmp_path / "w.yaml")]) != 0
+    assert "no such recording" in capsys.readouterr().err
+    (tmp_path / "r.bag").write_bytes(b"not a bag")
+    assert cli(["tune", str(tmp_path / "r.bag"), "-o", str(tmp_path / "w.txt")]) != 0
+    assert ".yaml" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_cli_end_to_end_with_prism_positions(tmp_path) -> None:
+    from jaxslam.sim import SimConfig, TunnelConfig, simulate_tunnel
+
+    bag = tmp_path / "t.bag"
+    sim = SimConfig(seed=5, tunnel=TunnelConfig(length=4.0))
+    simulate_tunnel(sim, bag, fmt="bag")
+    out = tmp_path / "w.yaml"
+    args = ["tune", str(bag), "-o", str(out), "--rounds", "1", "--steps", "3", "--truth", "positions", "-q"]
+    args += ["--lever-arm", *map(str, sim.prism), "--holdout", str(bag)]
+    assert cli(args) == 0
+    cfg = load_config(out)  # usable by jaxslam run --config
+    assert isinstance(cfg, PipelineConfig)
+    rep = json.loads(out.with_suffix(".report.json").read_text())
+    assert rep["rounds"][0]["truth"] == "positions"
+    assert len(rep["loss_history"]) == 4 and all(np.isfinite(rep["loss_history"]))
+    assert rep["heldout"][0]["ape_before_m"] is not None and rep["heldout"][0]["ape_after_m"] is not None
+    assert rep["estimator_runs"] == 3
+    assert Path(out.with_suffix(".loss.png")).stat().st_size > 1000
