@@ -41,6 +41,13 @@ def register(subparsers) -> None:
         default=(0.0, 0.0, 0.0),
         help="the prism's position in the body frame (m), with --truth positions",
     )
+    t.add_argument(
+        "--enhance",
+        action="store_true",
+        help="also learn ABA-CLAHE's alpha, beta and clip with the differentiable front-end objective "
+        "(consecutive frames of the training recordings)",
+    )
+    t.add_argument("--enhance-steps", type=int, default=20, help="Adam steps for --enhance (default 20)")
     t.add_argument("--workdir", help="where the estimator runs go (default: <output stem>_runs/)")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_tune)
@@ -71,7 +78,40 @@ def cmd_tune(args: argparse.Namespace) -> int:
     )
     work = Path(args.workdir) if args.workdir else out.with_name(out.stem + "_runs")
     bar = None if args.quiet else (lambda **kw: tqdm(**kw))
+    enhancement = None
+    if args.enhance:
+        from ._enhance_proxy import tune_enhancement
+        from ._tune import sample_frame_pairs
+
+        a, b = sample_frame_pairs(args.recordings)
+        v = cfg.vision
+        ebar = None if args.quiet else tqdm(total=args.enhance_steps + 1, desc="enhancement")
+
+        def step(k: int, n: int, value: float) -> None:
+            if ebar is not None:
+                ebar.update(1)
+                ebar.set_postfix(objective=f"{value:.4f}")
+
+        try:
+            enhancement = tune_enhancement(a, v.alpha, v.beta, v.clip, twins=b, steps=args.enhance_steps, progress=step)
+        finally:
+            if ebar is not None:
+                ebar.close()
+        cfg = cfg.replace(vision={"alpha": enhancement.alpha, "beta": enhancement.beta, "clip": enhancement.clip})
+        print(
+            f"enhancement: alpha {v.alpha:.3f} -> {enhancement.alpha:.3f}, "
+            f"beta {v.beta:.3f} -> {enhancement.beta:.3f}, "
+            f"clip {v.clip:.2f} -> {enhancement.clip:.2f} (objective {enhancement.history[0]:.4f} -> "
+            f"{min(enhancement.history):.4f}, {len(a)} frame pairs)"
+        )
     report = tune(args.recordings, cfg, tcfg, work, holdout=args.holdout, bar=bar)
+    if enhancement is not None:
+        report.enhancement = {
+            "alpha": enhancement.alpha,
+            "beta": enhancement.beta,
+            "clip": enhancement.clip,
+            "objective": enhancement.history,
+        }
     out.parent.mkdir(parents=True, exist_ok=True)
     save_config(report.config, out)
     png = out.with_suffix(".loss.png")

@@ -328,9 +328,11 @@ class TuneReport:
     heldout: list[dict[str, Any]]
     estimator_runs: int
     time_s: float
+    enhancement: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
+            "enhancement": self.enhancement,
             "weights": weights_summary(self.config),
             "loss_history": self.history,
             "rounds": self.rounds,
@@ -423,6 +425,42 @@ def _f(m: dict[str, Any]) -> str:
 
 def _g(x: Any) -> str:
     return "n/a" if x is None else f"{x:.4f}"
+
+
+def sample_frame_pairs(
+    recordings: Sequence[str | Path], pairs: int = 4, spacing_s: float = 2.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Consecutive grey camera frames ``(a, b)`` (``b`` the frame after ``a``), ``pairs`` from
+    each recording, ``spacing_s`` apart from its middle on: the views the enhancement proxy
+    compares (no noise twins exist in a real recording)."""
+    from ..io import open_recording
+    from ..measurements import Image
+
+    out_a: list[np.ndarray] = []
+    out_b: list[np.ndarray] = []
+    for path in recordings:
+        rec = open_recording(path)
+        spans = [(st.t_start, st.t_end) for st in rec.streams() if np.isfinite(st.t_start)]
+        t_mid = 0.5 * (min(a for a, _ in spans) + max(b for _, b in spans))
+        want, prev, got = t_mid, None, 0
+        for r in rec:
+            if not isinstance(r, Image):
+                continue
+            img = r.data if r.data.ndim == 2 else r.data.max(axis=2)
+            if prev is not None and prev[0] >= want:
+                out_a.append(prev[1])
+                out_b.append(img)
+                got += 1
+                want = prev[0] + spacing_s
+                if got >= pairs:
+                    break
+            prev = (r.t, img)
+        if got == 0:
+            raise InputFormatError("no camera frames after the middle of the recording", path)
+    shapes = {x.shape for x in out_a}
+    if len(shapes) != 1:
+        raise InputFormatError(f"the recordings' images differ in size: {sorted(shapes)}")
+    return np.stack(out_a), np.stack(out_b)
 
 
 def plot_loss(path: str | Path, report: TuneReport, steps_per_round: int) -> None:
