@@ -25,8 +25,7 @@ def register(subparsers) -> None:
     t.add_argument("--config", metavar="YAML", help="starting configuration (default: the built-in defaults)")
     t.add_argument("--rig", metavar="YAML", help="rig calibration (default: <first recording>.rig.yaml)")
     t.add_argument("--rounds", type=int, default=2, help="estimator runs per training recording (default 2)")
-    t.add_argument("--steps", type=int, default=40, help="gradient steps per round (default 40)")
-    t.add_argument("--lr", type=float, default=0.15, help="Adam step on the log multipliers (default 0.15)")
+    t.add_argument("--steps", type=int, default=40, help="loss+gradient evaluations per round (L-BFGS-B; default 40)")
     t.add_argument(
         "--truth",
         choices=["auto", "poses", "positions"],
@@ -73,9 +72,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     rig = args.rig or (find_rig(args.recordings[0]) if not args.config else None)
     if rig:
         cfg = dataclasses.replace(cfg, rig=load_rig(rig))
-    tcfg = TuneConfig(
-        steps=args.steps, learning_rate=args.lr, rounds=args.rounds, truth=args.truth, lever_arm=tuple(args.lever_arm)
-    )
+    tcfg = TuneConfig(steps=args.steps, rounds=args.rounds, truth=args.truth, lever_arm=tuple(args.lever_arm))
     work = Path(args.workdir) if args.workdir else out.with_name(out.stem + "_runs")
     bar = None if args.quiet else (lambda **kw: tqdm(**kw))
     enhancement = None

@@ -105,7 +105,7 @@ def test_adjoint_matches_finite_differences_few_hundred_poses():
 
 
 def test_gauss_newton_adjoint_is_exact_without_residuals():
-    factor_fn, values, theta0, loss_of = _graph(15.0, noise_free=True)
+    factor_fn, values, theta0, loss_of = _graph(20.0, noise_free=True)
     theta0 = {**theta0, "prior": jnp.zeros(3)}
     g_exact = jax.grad(lambda th: loss_of(DifferentiableSolver(factor_fn, values, th)(th)))(theta0)
     ds = DifferentiableSolver(factor_fn, values, theta0, ImplicitConfig(adjoint="gauss-newton"))
@@ -116,7 +116,7 @@ def test_gauss_newton_adjoint_is_exact_without_residuals():
 
 
 def test_unrolled_gradient_approaches_implicit():
-    factor_fn, values, theta0, loss_of = _graph(10.0)
+    factor_fn, values, theta0, loss_of = _graph(20.0)
     exact = jax.grad(lambda th: loss_of(DifferentiableSolver(factor_fn, values, theta0)(th)))(theta0)
     errs = []
     for steps in (1, 6):
@@ -129,7 +129,7 @@ def test_unrolled_gradient_approaches_implicit():
 
 
 def test_structure_change_and_free_gauge_are_refused():
-    factor_fn, values, theta0, _ = _graph(10.0)
+    factor_fn, values, theta0, _ = _graph(20.0)
     ds = DifferentiableSolver(factor_fn, values, theta0)
     with pytest.raises(GraphError):
         ds.problem.group_data_for(factor_fn(theta0)[1:])  # no prior: other kinds

@@ -89,12 +89,11 @@ def test_aligned_loss_is_zero_at_truth_and_its_gradient_matches_differences() ->
 
 def test_tuning_from_wrong_weights_helps_a_held_out_graph() -> None:
     train = [_captured(1, 30.0, lever=(0.0, 0.0, 0.55))]
-    res = tune_graphs(train, TuneConfig(steps=25, learning_rate=0.2))
+    res = tune_graphs(train, TuneConfig(steps=25))
     assert res.history[-1] < 0.7 * res.history[0]
     th = res.theta
     # the over-trusted odometry translation gets larger sigmas relative to the loops'
     assert th[GROUPS.index("lidar.translation")] > th[GROUPS.index("loop.translation")]
-    assert abs(float(np.sum(th))) < 1e-9  # relative weights only
     held = _captured(2, 30.0, lever=(0.0, 0.0, 0.55))
     from jaxslam.tune import DifferentiableSolver
 
