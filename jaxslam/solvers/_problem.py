@@ -115,6 +115,10 @@ class Problem:
     factor touches; they are left unchanged.
     """
 
+    group_data: list[GroupData]
+    """Per factor group: the (padded) factor and its scatter targets (replaced by
+    :meth:`set_factors`)."""
+
     def __init__(
         self, factors: Sequence[Factor], values: Values, *, ordering: str = "amd", fixed: Sequence[Variable] = ()
     ):
@@ -313,7 +317,7 @@ class Problem:
                 touched[d[d < n]] = True
         self.untouched_dofs = np.nonzero(~touched)[0]
 
-        self.group_data: list[GroupData] = []
+        self.group_data = []
         for s, f, rows, gk in zip(self.structures, self._group_factors, self._group_rows, keys_per_group):
             cap = s.capacity
             tgt_blocks = []

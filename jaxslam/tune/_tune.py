@@ -232,6 +232,8 @@ def tune_graphs(
     scale: list[float] = []
 
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+        if len(history) > cfg.steps:  # the evaluation budget is spent (L-BFGS-B may overrun maxfun)
+            raise _BudgetSpent
         th = jnp.asarray(np.where(present, x, 0.0))
         total = 0.0
         grad = jnp.zeros(len(GROUPS))
@@ -260,16 +262,23 @@ def tune_graphs(
         return value, g_all
 
     bounds = [(-cfg.max_log_change, cfg.max_log_change) if p else (0.0, 0.0) for p in present]
-    minimize(
-        fun,
-        np.zeros(len(GROUPS)),
-        jac=True,
-        method="L-BFGS-B",
-        bounds=bounds,
-        options={"maxfun": cfg.steps + 1, "maxiter": cfg.steps + 1},
-    )
+    try:
+        minimize(
+            fun,
+            np.zeros(len(GROUPS)),
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            options={"maxfun": cfg.steps + 1, "maxiter": cfg.steps + 1},
+        )
+    except _BudgetSpent:
+        pass
     # the best iterate by training loss (L-BFGS-B may end on a trial point)
     return GraphTuneResult(np.asarray(best[1]), history, gnorms, times[0], times[1])
+
+
+class _BudgetSpent(Exception):
+    pass
 
 
 def _random_search(

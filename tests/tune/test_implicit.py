@@ -119,7 +119,7 @@ def test_unrolled_gradient_approaches_implicit():
     factor_fn, values, theta0, loss_of = _graph(20.0)
     exact = jax.grad(lambda th: loss_of(DifferentiableSolver(factor_fn, values, theta0)(th)))(theta0)
     errs = []
-    for steps in (1, 6):
+    for steps in (1, 5):
         ds = DifferentiableSolver(factor_fn, values, theta0, ImplicitConfig(adjoint="unroll", unroll_steps=steps))
         g = jax.grad(lambda th, d=ds: loss_of(d(th)))(theta0)
         diff = jax.flatten_util.ravel_pytree(g)[0] - jax.flatten_util.ravel_pytree(exact)[0]
