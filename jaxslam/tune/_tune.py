@@ -24,6 +24,7 @@ they never enter the loss.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
@@ -262,7 +263,7 @@ def tune_graphs(
         return value, g_all
 
     bounds = [(-cfg.max_log_change, cfg.max_log_change) if p else (0.0, 0.0) for p in present]
-    try:
+    with contextlib.suppress(_BudgetSpent):
         minimize(
             fun,
             np.zeros(len(GROUPS)),
@@ -271,8 +272,6 @@ def tune_graphs(
             bounds=bounds,
             options={"maxfun": cfg.steps + 1, "maxiter": cfg.steps + 1},
         )
-    except _BudgetSpent:
-        pass
     # the best iterate by training loss (L-BFGS-B may end on a trial point)
     return GraphTuneResult(np.asarray(best[1]), history, gnorms, times[0], times[1])
 
