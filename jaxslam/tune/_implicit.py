@@ -56,6 +56,12 @@ from ..solvers._problem import GroupData, assemble, retract_all, total_cost
 
 Adjoint = Literal["exact", "gauss-newton", "unroll"]
 
+# JAX traces ``jax.grad``'s forward and backward passes with an empty abstract mesh in its
+# context, and an eager call with none: the context is part of every jit cache key, so the
+# host-side solves would compile each kernel (the Hessian-vector product, the assembly) once
+# per context. All host work here runs under this one mesh instead: one compile each.
+_HOST_MESH = jax.sharding.AbstractMesh((), ())
+
 
 def _tight() -> SolverConfig:
     return SolverConfig(
@@ -174,11 +180,18 @@ class DifferentiableSolver:
 
     # --- forward ------------------------------------------------------------------------
     def groups(self, theta: Any) -> list[GroupData]:
-        """The graph's group data for ``theta`` (traceable)."""
+        """The graph's group data for ``theta`` (traceable). Leaves are made strongly typed
+        first: a weakly typed scalar (``jnp.asarray(1.0)``) and the array an optimiser hands
+        back are the same parameter and must reuse the same compiled kernels."""
+        theta = jax.tree_util.tree_map(lambda a: jax.lax.convert_element_type(a, jnp.result_type(a)), theta)
         return self.problem.group_data_for(list(self.factor_fn(theta)))
 
     def solve(self, theta: Any) -> Values:
         """The optimum for ``theta`` (no gradient): Gauss-Newton to tight tolerances."""
+        with jax.sharding.use_abstract_mesh(_HOST_MESH):
+            return self._solve_host(theta)
+
+    def _solve_host(self, theta: Any) -> Values:
         t0 = time.perf_counter()
         self.problem.group_data = self.groups(theta)
         start = self._last if (self.config.warm_start and self._last is not None) else self.initial_values
@@ -219,6 +232,10 @@ class DifferentiableSolver:
 
     def adjoint(self, theta: Any, x: Values, ct: Values) -> Any:
         """``dL/dtheta`` from ``ct = dL/dx*`` (cotangent on the parameter arrays of ``x``)."""
+        with jax.sharding.use_abstract_mesh(_HOST_MESH):
+            return self._adjoint_host(theta, x, ct)
+
+    def _adjoint_host(self, theta: Any, x: Values, ct: Values) -> Any:
         t0 = time.perf_counter()
         p = self.problem
         params = p.pad_values(x)
