@@ -7,12 +7,16 @@ rank-broadcast in library code fails loudly here instead of hiding a shape bug.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 # The CLI keeps compiled programs on disk; tests call it in-process, so keep the test
 # session's JAX configuration untouched (a test checks the cache in a subprocess).
 os.environ["JAXSLAM_CACHE_DIR"] = ""
 
+import atexit
 import importlib
+import shutil
+import tempfile
 
 import jax
 import numpy as np
@@ -20,6 +24,16 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+# One persistent compilation cache per test session (a fresh temporary folder, removed at
+# exit): many tests build the same programs from new closures (an estimator, a solver or a
+# tuner per test), which JAX's in-memory caches key by function identity and compile again;
+# the on-disk cache keys by the program itself, so each distinct program compiles once per
+# session. Results are unchanged (the same executable), and nothing outlives the session.
+_CACHE_DIR = tempfile.mkdtemp(prefix="jaxslam-test-jit-")
+atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
+jax.config.update("jax_compilation_cache_dir", _CACHE_DIR)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
 def _import_gtsam():
@@ -87,3 +101,15 @@ def rng() -> np.random.Generator:
 def module_rng() -> np.random.Generator:
     """A seeded generator for module-scoped fixtures."""
     return np.random.default_rng(7)
+
+
+@pytest.fixture(scope="session")
+def short_tunnel_bag(tmp_path_factory) -> Path:
+    """A short simulated tunnel recording (4 m out and back, ~18 s, ROS1 bag with its
+    ``.rig.yaml`` beside it), made once per session: the estimator's and the tuner's end-to-end
+    tests read it (read-only; tests that damage a recording copy it first)."""
+    from jaxslam.sim import SimConfig, TunnelConfig, simulate_tunnel
+
+    path = tmp_path_factory.mktemp("short-tunnel") / "short.bag"
+    simulate_tunnel(SimConfig(seed=3, tunnel=TunnelConfig(length=4.0)), path, fmt="bag")
+    return path

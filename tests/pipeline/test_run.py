@@ -21,11 +21,8 @@ from jaxslam.sim import (
     CameraDark,
     NanSamples,
     SensorDropout,
-    SimConfig,
     TimeJump,
-    TunnelConfig,
     inject_faults,
-    simulate_tunnel,
     truncate_file,
 )
 
@@ -33,10 +30,8 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def bag(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("sim") / "short.bag"
-    simulate_tunnel(SimConfig(seed=3, tunnel=TunnelConfig(length=4.0)), path, fmt="bag")
-    return path
+def bag(short_tunnel_bag) -> Path:
+    return short_tunnel_bag
 
 
 @pytest.fixture(scope="module")

@@ -156,18 +156,21 @@ def test_cli_refuses_bad_input(tmp_path, capsys) -> None:
 
 
 @pytest.mark.slow
-def test_cli_end_to_end_with_prism_positions(tmp_path) -> None:
-    from jaxslam.sim import SimConfig, TunnelConfig, simulate_tunnel
+def test_cli_end_to_end_with_prism_positions(tmp_path, short_tunnel_bag) -> None:
+    from jaxslam.sim import SimConfig
 
-    bag = tmp_path / "t.bag"
-    sim = SimConfig(seed=5, tunnel=TunnelConfig(length=4.0))
-    simulate_tunnel(sim, bag, fmt="bag")
+    bag = short_tunnel_bag
+    sim = SimConfig()  # the recording's rig: the prism lever arm is the simulator's default
     out = tmp_path / "w.yaml"
-    args = ["tune", str(bag), "-o", str(out), "--rounds", "1", "--steps", "2", "--truth", "positions", "-q"]
+    start = tmp_path / "start.yaml"  # the estimator settings of tests/pipeline: their compiled programs
+    start.write_text("vision:\n  threaded: false\n  max_keypoints: 600\n")
+    args = ["tune", str(bag), "-o", str(out), "--config", str(start), "--rounds", "1", "--steps", "2"]
+    args += ["--truth", "positions", "-q"]
     args += ["--lever-arm", *map(str, sim.prism)]
     assert cli(args) == 0
     cfg = load_config(out)  # usable by jaxslam run --config
     assert isinstance(cfg, PipelineConfig)
+    assert cfg.vision.max_keypoints == 600 and not cfg.vision.threaded  # the starting config carried over
     rep = json.loads(out.with_suffix(".report.json").read_text())
     assert rep["rounds"][0]["truth"] == "positions"
     assert 1 <= len(rep["loss_history"]) <= 3 and all(np.isfinite(rep["loss_history"]))  # the budget holds
