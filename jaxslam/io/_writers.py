@@ -366,7 +366,8 @@ def write_ply(path: str | Path, points: Any, intensity: Any = None, binary: bool
 
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read a PLY point map written by :func:`write_ply` (vertex x y z [intensity])."""
+    """Read a PLY point map (vertex x y z [intensity]): :func:`write_ply`'s, or another tool's
+    (the intensity also as ``scalar_intensity``, ``reflectivity`` or ``remission``)."""
     data = Path(path).read_bytes()
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply") or end < 0:
@@ -392,7 +393,13 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     else:
         raise InputFormatError(f"unsupported PLY format {fmt!r}", path)
     pts = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
-    return pts, cols.get("intensity")
+    # the intensity under the names tools give it (CloudCompare: "scalar_<field>")
+    lower = {n.lower(): n for n in cols}
+    name = next((lower[k] for k in _INTENSITY_NAMES if k in lower), None)
+    return pts, cols[name] if name is not None else None
+
+
+_INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectivity", "scalar_reflectivity", "remission")
 
 
 def write_pcd(path: str | Path, points: Any, intensity: Any = None, binary: bool = True) -> None:

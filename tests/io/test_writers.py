@@ -135,6 +135,19 @@ def test_point_maps_round_trip(tmp_path, binary, with_intensity):
             assert i2 is None
 
 
+def test_ply_from_another_tool_keeps_its_intensity():
+    """CloudCompare names the field ``scalar_intensity`` (the real scan pair in shared/data)."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "lidar" / "source.ply"
+    if not path.exists():
+        pytest.skip("shared/data/lidar is not beside the checkout")
+    assert b"scalar_intensity" in path.read_bytes()[:1000]
+    pts, inten = read_ply(path)
+    assert inten is not None and inten.shape == (len(pts),) and inten.min() >= 0 and inten.max() <= 255
+    assert len(np.unique(inten)) > 50
+
+
 def test_point_map_readers_reject_bad_files(tmp_path):
     (tmp_path / "bad.ply").write_bytes(b"not a ply")
     with pytest.raises(InputFormatError, match="not a PLY"):
