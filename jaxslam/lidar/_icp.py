@@ -32,6 +32,17 @@ reported split is that of the solution's Hessian. It follows the data: when the 
 wall is in view its points lift the along-axis eigenvalue above the threshold and the axis is
 estimated normally.
 
+**Reflectivity (optional).** With ``source_intensity`` (per source point, e.g.
+:func:`relative_reflectivity`) and a map whose points carry a reflectivity model
+(:class:`VoxelMap`), each correspondence adds a photometric residual ``I_p - (c_m + g_m . (T p -
+m))`` (``c_m``, ``g_m`` the map point's value and in-plane gradient), Jacobian ``-[(p x R^T
+g)^T, (R^T g)^T]``, robustly weighted like the geometric one (Geman-McClure, scale from its own
+MAD, floor ``min_intensity_scale``) and whitened into the geometric residual's units (times
+``intensity_weight * s_geo / s_int``), in the spirit of Park, Zhou and Koltun's coloured ICP
+(ICCV 2017). On plain tunnel walls the geometry leaves the axis weak; stains, joints, pipes and
+paint in the reflectance observe it, the degeneracy analysis sees that (the combined Hessian)
+and the axis is estimated instead of held.
+
 **Outputs.** ``information = H / sigma_r^2`` with ``H = J^T W J`` at the solution and
 ``sigma_r^2`` the weighted residual variance, in the right-perturbation tangent of ``T``,
 order [rotation, translation]. Along weak directions it is left as the data make it: small
@@ -90,6 +101,12 @@ class IcpConfig:
     """Length (m) that makes rotation comparable to translation; ``None``: median source range."""
     remap_degenerate: bool = True
     """Do not move along weak directions (solution remapping); ``False``: plain Gauss-Newton."""
+    intensity_weight: float = 1.0
+    """Weight of the reflectivity residuals (when ``source_intensity`` is given and the map has
+    reflectivity), relative to the geometric ones after whitening each by its robust scale; 0:
+    geometry only."""
+    min_intensity_scale: float = 0.02
+    """Floor of the reflectivity residuals' robust scale (relative reflectivity units)."""
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1 or self.min_correspondences < 6:
@@ -100,6 +117,8 @@ class IcpConfig:
             raise ConfigError("kernel_scale must be positive or None")
         if self.rotation_length is not None and not self.rotation_length > 0:
             raise ConfigError("rotation_length must be positive or None")
+        if not (self.intensity_weight >= 0 and self.min_intensity_scale > 0):
+            raise ConfigError("intensity_weight must be >= 0 and min_intensity_scale > 0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +153,8 @@ class Registration:
     """``sigma_r`` (m): the weighted residual standard deviation that scales ``information``."""
     rotation_length: float = 1.0
     """``L`` (m) used to scale rotations for the degeneracy analysis."""
+    intensity_correspondences: int = 0
+    """Correspondences that also had a reflectivity residual (0: geometry only)."""
 
     def strong_information(self) -> np.ndarray:
         """``information`` with the weak directions removed (exactly zero information along
@@ -155,13 +176,26 @@ class _Terms:
     r: np.ndarray
     w: np.ndarray
     scale: float
+    n_intensity: int = 0
 
 
-def register(source_points, voxel_map: VoxelMap, T_init, config: IcpConfig | None = None) -> Registration:
+def register(
+    source_points, voxel_map: VoxelMap, T_init, config: IcpConfig | None = None, source_intensity=None
+) -> Registration:
     """Align ``source_points`` ``(N, 3)`` (sensor frame, deskewed) to ``voxel_map`` starting
-    from ``T_init`` ``(4, 4)`` world_T_sensor. See the module docstring."""
+    from ``T_init`` ``(4, 4)`` world_T_sensor; ``source_intensity`` ``(N,)`` (``NaN`` for none)
+    adds the reflectivity term when the map has reflectivity. See the module docstring."""
     cfg = config or IcpConfig()
     src = check_points(source_points, "source_points")
+    src_i = None
+    if source_intensity is not None:
+        src_i = np.asarray(source_intensity, dtype=np.float64).reshape(-1)
+        if src_i.shape != (len(src),):
+            raise InputFormatError(f"source_intensity must have shape ({len(src)},), got {src_i.shape}")
+        if np.isinf(src_i).any():
+            raise InputFormatError("source_intensity contains infinite values (NaN marks none)")
+        if cfg.intensity_weight == 0 or not voxel_map.has_intensity or not np.isfinite(src_i).any():
+            src_i = None
     T0 = np.asarray(T_init, dtype=np.float64)
     if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
         raise InputFormatError(f"T_init must be a finite (4, 4) matrix, got shape {T0.shape}")
@@ -179,7 +213,7 @@ def register(source_points, voxel_map: VoxelMap, T_init, config: IcpConfig | Non
     converged, it = False, 0
     basis: tuple[np.ndarray, np.ndarray] | None = None
     for it in range(1, cfg.max_iterations + 1):
-        terms = _linearize(T, src, voxel_map, cfg, it)
+        terms = _linearize(T, src, voxel_map, cfg, it, src_i)
         if terms.n < cfg.min_correspondences:
             return _failed(T0, src, f"{terms.n} correspondences (< min_correspondences {cfg.min_correspondences})", it)
         Hs = terms.H * np.outer(s_inv, s_inv) / terms.wsum
@@ -207,7 +241,7 @@ def register(source_points, voxel_map: VoxelMap, T_init, config: IcpConfig | Non
         if small and _annealed(cfg, it):
             converged = True
             break
-    terms = _linearize(T, src, voxel_map, cfg, cfg.max_iterations)
+    terms = _linearize(T, src, voxel_map, cfg, cfg.max_iterations, src_i)
     if terms.n < cfg.min_correspondences:
         return _failed(T0, src, f"{terms.n} correspondences at the solution", it)
     return _result(T, src, terms, cfg, L, it, converged)
@@ -217,7 +251,9 @@ def _annealed(cfg: IcpConfig, it: int) -> bool:
     return cfg.kernel_scale is not None or cfg.initial_kernel_scale * 0.5 ** (it - 1) <= cfg.min_kernel_scale
 
 
-def _linearize(T: np.ndarray, src: np.ndarray, vmap: VoxelMap, cfg: IcpConfig, it: int) -> _Terms:
+def _linearize(
+    T: np.ndarray, src: np.ndarray, vmap: VoxelMap, cfg: IcpConfig, it: int, src_i: np.ndarray | None = None
+) -> _Terms:
     R, t = T[:3, :3], T[:3, 3]
     q = src @ R.T + t
     _, idx = vmap.neighbors(q, 1, cfg.max_correspondence_distance)
@@ -238,7 +274,31 @@ def _linearize(T: np.ndarray, src: np.ndarray, vmap: VoxelMap, cfg: IcpConfig, i
     n_s = n_w @ R  # R^T n, row-wise
     J = np.concatenate([np.cross(p, n_s), n_s], axis=1)
     Jw = J * w[:, None]
-    return _Terms(len(r), Jw.T @ J, Jw.T @ r, float(w.sum()), r, w, scale)
+    terms = _Terms(len(r), Jw.T @ J, Jw.T @ r, float(w.sum()), r, w, scale)
+    if src_i is not None:
+        _add_intensity(terms, R, p, qi, ii, src_i[ok], vmap, cfg)
+    return terms
+
+
+def _add_intensity(
+    terms: _Terms, R: np.ndarray, p: np.ndarray, q: np.ndarray, ii: np.ndarray, ip: np.ndarray, vmap: VoxelMap, cfg
+) -> None:
+    """Add the reflectivity residuals of the correspondences (in place; see the module doc)."""
+    c = vmap.intensity[ii]
+    use = np.isfinite(ip) & np.isfinite(c)
+    if use.sum() < cfg.min_correspondences:
+        return
+    g = vmap.intensity_gradient[ii[use]]
+    r = ip[use] - (c[use] + np.einsum("ij,ij->i", g, q[use] - vmap._points[ii[use]]))
+    s_i = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), cfg.min_intensity_scale)
+    w = (s_i**2 / (s_i**2 + r * r)) ** 2
+    k = cfg.intensity_weight * terms.scale / s_i  # whiten into the geometric residual's units
+    g_s = g @ R
+    J = -k * np.concatenate([np.cross(p[use], g_s), g_s], axis=1)
+    Jw = J * w[:, None]
+    terms.H = terms.H + Jw.T @ J
+    terms.g = terms.g + Jw.T @ (k * r)
+    terms.n_intensity = int(use.sum())
 
 
 def _result(T, src, terms: _Terms, cfg: IcpConfig, L: float, it: int, converged: bool) -> Registration:
@@ -269,6 +329,7 @@ def _result(T, src, terms: _Terms, cfg: IcpConfig, L: float, it: int, converged:
         message="" if converged else f"no convergence in {cfg.max_iterations} iterations",
         residual_sigma=float(np.sqrt(var)),
         rotation_length=L,
+        intensity_correspondences=terms.n_intensity,
     )
 
 

@@ -8,6 +8,12 @@ planarity score from a PCA of its ``normal_neighbors`` nearest map points (withi
 ``normal_radius``), computed when it is inserted (its own scan's points included), so
 point-to-plane registration needs one nearest-neighbour query per source point.
 
+Points may carry a reflectivity (``add(..., intensity=...)``, e.g. from
+:func:`relative_reflectivity`): then each point also gets, from the same neighbours, a local
+linear model of the reflectivity in its tangent plane (its value at the point and its in-plane
+gradient), which lets registration use the surface pattern along directions the geometry does
+not observe. Points without one (``NaN``) get gradient 0 and are skipped by that term.
+
 Nearest neighbours come from a ``scipy.spatial.cKDTree`` rebuilt on every ``add``.
 """
 
@@ -38,6 +44,9 @@ class VoxelMapConfig:
     """Neighbours farther than this are ignored for normals (m)."""
     min_normal_neighbors: int = 6
     """A point with fewer neighbours within ``normal_radius`` gets planarity 0 (not used)."""
+    intensity_radius: float = 0.5
+    """Neighbours within this radius (m) fit a point's reflectivity model (of those found for
+    its normal)."""
 
     def __post_init__(self) -> None:
         if not (self.voxel_size > 0 and self.max_distance > 0 and self.normal_radius > 0):
@@ -77,6 +86,10 @@ class VoxelMap:
         self._keys = np.zeros(0, dtype=np.int64)
         self._normals = np.zeros((0, 3))
         self._planarity = np.zeros(0)
+        self._raw = np.zeros(0)
+        self._intensity = np.zeros(0)
+        self._igrad = np.zeros((0, 3))
+        self._has_intensity = False
         self._tree: cKDTree | None = None
 
     def __len__(self) -> int:
@@ -96,15 +109,44 @@ class VoxelMap:
         """Planarity ``(M,)`` of each point's neighbourhood, 0 where too few neighbours."""
         return self._planarity
 
-    def add(self, points_world, origin) -> int:
-        """Insert world points ``(N, 3)``; drop map points beyond ``max_distance`` from
-        ``origin`` ``(3,)`` (the sensor's current position). Returns how many were inserted."""
+    @property
+    def has_intensity(self) -> bool:
+        """Some map point carries a reflectivity (see :meth:`add`)."""
+        return self._has_intensity
+
+    @property
+    def intensity(self) -> np.ndarray:
+        """Reflectivity ``(M,)`` of each map point from its local linear model (``NaN`` where
+        none)."""
+        return self._intensity
+
+    @property
+    def intensity_gradient(self) -> np.ndarray:
+        """In-plane gradient ``(M, 3)`` of the reflectivity (per m; 0 where none)."""
+        return self._igrad
+
+    def add(self, points_world, origin, intensity=None) -> int:
+        """Insert world points ``(N, 3)`` (with an optional reflectivity ``(N,)`` each, ``NaN``
+        for none); drop map points beyond ``max_distance`` from ``origin`` ``(3,)`` (the
+        sensor's current position). Returns how many were inserted."""
         cfg = self.config
         new = check_points(points_world, "points_world")
         o = np.asarray(origin, dtype=np.float64).reshape(-1)
         if o.shape != (3,) or not np.all(np.isfinite(o)):
             raise InputFormatError(f"origin must be 3 finite numbers, got {np.asarray(origin).shape}")
-        new = new[np.sum((new - o) ** 2, axis=1) <= cfg.max_distance**2]
+        if intensity is None:
+            inten = np.full(len(new), np.nan)
+        else:
+            inten = np.asarray(intensity, dtype=np.float64).reshape(-1)
+            if inten.shape != (len(new),):
+                raise InputFormatError(
+                    f"intensity must have shape ({len(new)},) to match the points, got {inten.shape}"
+                )
+            if np.isinf(inten).any():
+                raise InputFormatError("intensity contains infinite values (NaN marks none)")
+            self._has_intensity |= bool(np.isfinite(inten).any())
+        inside = np.sum((new - o) ** 2, axis=1) <= cfg.max_distance**2
+        new, inten = new[inside], inten[inside]
         n_old = len(self._points)
         keys = np.concatenate([self._keys, voxel_keys(new, cfg.voxel_size)])
         pts = np.concatenate([self._points, new])
@@ -119,17 +161,24 @@ class VoxelMap:
         keep &= np.sum((pts - o) ** 2, axis=1) <= cfg.max_distance**2
         normals = np.concatenate([self._normals, np.zeros((len(new), 3))])[keep]
         planarity = np.concatenate([self._planarity, np.zeros(len(new))])[keep]
+        raw = np.concatenate([self._raw, inten])[keep]
+        igrad = np.concatenate([self._igrad, np.zeros((len(new), 3))])[keep]
+        ival = np.concatenate([self._intensity, np.full(len(new), np.nan)])[keep]
         self._points, self._keys, is_new = pts[keep], keys[keep], is_new[keep]
+        self._raw = raw
         self._tree = cKDTree(self._points) if len(self._points) else None
         if np.any(is_new):
-            normals[is_new], planarity[is_new] = self._normals_at(self._points[is_new])
-        self._normals, self._planarity = normals, planarity
+            normals[is_new], planarity[is_new], ival[is_new], igrad[is_new] = self._local_models(
+                self._points[is_new], raw
+            )
+        self._normals, self._planarity, self._intensity, self._igrad = normals, planarity, ival, igrad
         return int(np.sum(is_new))
 
     def refresh_normals(self) -> None:
-        """Recompute every map point's normal from the current map (e.g. after many adds)."""
+        """Recompute every map point's normal (and reflectivity model) from the current map
+        (e.g. after many adds)."""
         if len(self._points):
-            self._normals, self._planarity = self._normals_at(self._points)
+            self._normals, self._planarity, self._intensity, self._igrad = self._local_models(self._points, self._raw)
 
     def neighbors(self, query, k: int = 1, max_distance: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` nearest map points of each query point ``(Q, 3)``: distances ``(Q, k)``
@@ -143,12 +192,50 @@ class VoxelMap:
         idx[~np.isfinite(dist)] = -1
         return dist, idx
 
-    def _normals_at(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _local_models(self, q: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Normals, planarity, reflectivity value and in-plane gradient at the map points ``q``
+        from their neighbours (the reflectivity only where the map has some)."""
         cfg = self.config
         k = min(cfg.normal_neighbors, len(self._points))
-        _, idx = self.neighbors(q, k, cfg.normal_radius)
+        dist, idx = self.neighbors(q, k, cfg.normal_radius)
         valid = idx >= 0
-        nb = self._points[np.where(valid, idx, 0)]
+        safe = np.where(valid, idx, 0)
+        nb = self._points[safe]
         normals, planarity = estimate_normals(nb, valid)
         planarity[valid.sum(axis=1) < cfg.min_normal_neighbors] = 0.0
-        return normals, planarity
+        value = np.full(len(q), np.nan)
+        grad = np.zeros((len(q), 3))
+        if self._has_intensity:
+            value, grad = _plane_gradient(q, nb, raw[safe], valid & (dist <= cfg.intensity_radius), normals)
+            value[planarity <= 0.0] = np.nan
+            grad[~np.isfinite(value)] = 0.0
+        return normals, planarity, value, grad
+
+
+def _plane_gradient(
+    q: np.ndarray, nb: np.ndarray, inten: np.ndarray, valid: np.ndarray, normals: np.ndarray, min_points: int = 6
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares ``I(x) = c + g . (x - q)`` with ``g`` in the tangent plane (normal
+    ``n``), over the neighbours ``nb`` ``(Q, k, 3)`` with values ``inten`` ``(Q, k)`` (NaN:
+    none). Returns ``c`` ``(Q,)`` (NaN with fewer than ``min_points`` values) and ``g``
+    ``(Q, 3)``. A small ridge keeps ill-spread neighbourhoods (a line of points) finite."""
+    use = valid & np.isfinite(inten)
+    w = use.astype(np.float64)
+    cnt = w.sum(axis=1)
+    val = np.where(use, inten, 0.0)
+    d = nb - q[:, None, :]
+    d = d - np.einsum("qkd,qd->qk", d, normals)[..., None] * normals[:, None, :]  # into the plane
+    # unknowns [c, g]: normal equations of sum_k w (c + g . d_k - I_k)^2 + ridge |g|^2 + big (g . n)^2
+    A = np.zeros((len(q), 4, 4))
+    A[:, 0, 0] = cnt
+    A[:, 0, 1:] = A[:, 1:, 0] = np.einsum("qk,qkd->qd", w, d)
+    A[:, 1:, 1:] = np.einsum("qk,qki,qkj->qij", w, d, d)
+    spread = np.trace(A[:, 1:, 1:], axis1=1, axis2=2) / np.maximum(cnt, 1.0)
+    ridge = (1e-3 * spread + 1e-6)[:, None, None]
+    A[:, 1:, 1:] += ridge * np.eye(3) + (1e3 * spread + 1.0)[:, None, None] * np.einsum("qi,qj->qij", normals, normals)
+    A[:, 0, 0] += 1e-9
+    b = np.concatenate([(w * val).sum(axis=1)[:, None], np.einsum("qk,qkd->qd", w * val, d)], axis=1)
+    sol = np.linalg.solve(A, b[..., None])[..., 0]
+    c, g = sol[:, 0], sol[:, 1:]
+    enough = cnt >= min_points
+    return np.where(enough, c, np.nan), np.where(enough[:, None], g, 0.0)
