@@ -14,7 +14,9 @@ into the tunnel. Points are returned in the LiDAR frame at their own time, with
   (28,800 points per frame before ``decimation``), time by azimuth; ``ring`` ids are kept.
 
 Range noise is Gaussian; dropouts are random plus grazing-angle returns; intensity is
-albedo x cos(incidence) scaled to 0..255; beyond ``max_range`` nothing returns.
+albedo x (0.3 + 0.7 cos(incidence)) scaled to 0..255 with multiplicative noise
+(``intensity_noise``) and rounded to whole counts, as a sensor reports it; beyond
+``max_range`` nothing returns.
 """
 
 from __future__ import annotations
@@ -44,6 +46,10 @@ class LidarConfig:
     """Fraction of returns lost at random."""
     max_range: float = 150.0
     min_range: float = 0.5
+    intensity_noise: float = 0.08
+    """Relative standard deviation of each return's intensity. 0.08 makes the scan-to-scan
+    repeatability of the relative reflectivity, against the pattern's own spread, what the
+    real scan pair in ``shared/data/lidar`` shows (``benchmarks/sim_realism.py``)."""
     translation: tuple[float, float, float] = (0.25, 0.0, 0.45)
     """LiDAR origin in the body frame (m); axes as the body's (x forward, y left, z up)."""
 
@@ -52,6 +58,8 @@ class LidarConfig:
             raise ConfigError(f"lidar model must be 'hap' or 'ring16', got {self.model!r}")
         if self.decimation < 1 or not self.rate > 0:
             raise ConfigError("lidar decimation must be >= 1 and rate > 0")
+        if not self.intensity_noise >= 0:
+            raise ConfigError("lidar intensity_noise must be >= 0")
 
     @property
     def points_per_second(self) -> float:
@@ -92,6 +100,7 @@ class LidarSimulator:
     def __init__(self, config: LidarConfig, tunnel: Tunnel, atlas: SurfaceAtlas, seed: int = 0):
         self.config, self.tunnel, self.atlas = config, tunnel, atlas
         self.rng = np.random.default_rng([seed, 5])
+        self.seed = seed
         self.t_bl = np.asarray(config.translation, dtype=np.float64)
 
     def scan(self, t: float, state_at) -> dict[str, np.ndarray]:
@@ -116,7 +125,12 @@ class LidarSimulator:
         keep &= self.rng.random(len(rng)) >= np.clip((0.12 - cos_inc) / 0.12, 0, 1)  # grazing returns fade
         noisy = rng + cfg.range_noise * self.rng.standard_normal(len(rng))
         pts = d_l * noisy[:, None]
-        inten = np.clip(255 * albedo * (0.3 + 0.7 * cos_inc), 0, 255)
+        inten = 255 * albedo * (0.3 + 0.7 * cos_inc)
+        if cfg.intensity_noise:
+            # its own stream, keyed by the frame time: the range noise and dropouts are unchanged
+            irng = np.random.default_rng([self.seed, 29, round(float(t) * 1e4)])
+            inten = np.rint(inten * (1 + cfg.intensity_noise * irng.standard_normal(len(inten))))
+        inten = np.clip(inten, 0, 255)
         return {
             "points": pts[keep],
             "intensity": inten[keep],
