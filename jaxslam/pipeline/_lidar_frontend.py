@@ -1,7 +1,9 @@
 """LiDAR odometry for the estimator: deskew with IMU-propagated motion, downsample, register to
 a local voxel map in the odometry frame (scan-to-map, kiss-icp style), and turn the
 registration Hessian into the information of an odometry factor with degenerate directions
-(the tunnel axis) down-weighted."""
+(the tunnel axis) down-weighted. With ``lidar.intensity`` the return intensity, made a relative
+reflectivity per scan, joins the registration and the map, so the surface pattern observes the
+axis where the geometry is degenerate."""
 
 from __future__ import annotations
 
@@ -9,7 +11,17 @@ import dataclasses
 
 import numpy as np
 
-from ..lidar import IcpConfig, Registration, VoxelMap, VoxelMapConfig, crop_range, deskew, register, voxel_downsample
+from ..lidar import (
+    IcpConfig,
+    Registration,
+    VoxelMap,
+    VoxelMapConfig,
+    crop_range,
+    deskew,
+    register,
+    relative_reflectivity,
+    voxel_downsample,
+)
 from ..lie import host
 from ._config import LidarConfig
 
@@ -31,6 +43,8 @@ class ScanResult:
     """Number of the latest scan up to this one whose registration did not observe the
     direction of travel (weak along body x, or unregistered): the odometry is anchored
     (drift-free along the axis too) over the scans after it."""
+    reflectivity: np.ndarray | None = None
+    """Relative reflectivity of ``points`` (N,), NaN where none; None without intensity."""
 
 
 def information_for_factor(info_lidar: np.ndarray, T_bl: np.ndarray, cfg: LidarConfig, scale: float) -> np.ndarray:
@@ -71,33 +85,50 @@ class LidarOdometry:
                 voxel_size=cfg.map_voxel, max_points_per_voxel=cfg.map_points_per_voxel, max_distance=cfg.map_radius
             )
         )
-        self.icp = IcpConfig()
+        self.icp = IcpConfig(intensity_weight=cfg.intensity_weight if cfg.intensity else 0.0)
         self.last: ScanResult | None = None
         self.degenerate = 0
         self.processed = 0
         self._last_degenerate = -1
 
     def process(
-        self, t_ref: float, points: np.ndarray, point_times: np.ndarray, body_motion, T_odom_pred: np.ndarray
+        self,
+        t_ref: float,
+        points: np.ndarray,
+        point_times: np.ndarray,
+        body_motion,
+        T_odom_pred: np.ndarray,
+        intensity: np.ndarray | None = None,
     ) -> ScanResult:
         """``body_motion``: (times (K,), poses (K, 4, 4)) of the body in any fixed frame over
         the scan (IMU-propagated); ``point_times`` absolute (s); ``T_odom_pred`` the predicted
-        body pose at ``t_ref`` in the odometry frame."""
+        body pose at ``t_ref`` in the odometry frame; ``intensity`` (N,) the raw returns."""
         cfg = self.cfg
         times, poses = body_motion
         lid = poses @ self.T_bl
         pts = deskew(points, point_times, (lid[:, :3, :3], lid[:, :3, 3], times), reference_time=t_ref, tolerance=0.02)
-        pts = np.asarray(crop_range(pts, cfg.min_range, cfg.max_range))
-        src = np.asarray(voxel_downsample(pts, cfg.voxel))
+        use_i = cfg.intensity and intensity is not None
+        if use_i:
+            pts, inten = crop_range(pts, cfg.min_range, cfg.max_range, np.asarray(intensity, dtype=np.float64))
+            # reflectivity on a 10 cm grid: fine enough for its 0.2 m smoothing, ~4x fewer points
+            pts, inten = voxel_downsample(pts, 0.1, inten)
+            refl = relative_reflectivity(
+                pts, inten, radius=cfg.intensity_radius, smooth=cfg.intensity_smooth, max_range=cfg.intensity_max_range
+            )
+        else:
+            pts = np.asarray(crop_range(pts, cfg.min_range, cfg.max_range))
+            refl = np.full(len(pts), np.nan)
+        src, src_r = voxel_downsample(pts, cfg.voxel, refl)
         T_init = T_odom_pred @ self.T_bl
         reg: Registration | None = None
         if len(self.map) == 0:
             T_l = T_init
         else:
-            reg = register(src, self.map, T_init, self.icp)
+            reg = register(src, self.map, T_init, self.icp, source_intensity=src_r if use_i else None)
             T_l = reg.T if reg.converged else T_init
         if self.processed % cfg.map_every == 0 or len(self.map) == 0:
-            self.map.add(host.transform_points(T_l, np.asarray(voxel_downsample(pts, cfg.map_voxel))), T_l[:3, 3])
+            m_pts, m_r = voxel_downsample(pts, cfg.map_voxel, refl)
+            self.map.add(host.transform_points(T_l, m_pts), T_l[:3, 3], intensity=m_r if use_i else None)
         T_b = T_l @ self.T_lb
         deg = bool(reg is not None and reg.degenerate)
         self.degenerate += int(deg)
@@ -108,7 +139,8 @@ class LidarOdometry:
         if axis_weak:
             self._last_degenerate = self.processed
         self.processed += 1
-        body_pts = host.transform_points(self.T_bl, np.asarray(voxel_downsample(pts, 0.1)))
+        body_p, body_r = voxel_downsample(pts, 0.1, refl)
+        body_pts = host.transform_points(self.T_bl, body_p)
         res = ScanResult(
             t_ref,
             T_b,
@@ -118,6 +150,7 @@ class LidarOdometry:
             float(reg.condition_number) if reg is not None else np.nan,
             self.processed - 1,
             self._last_degenerate,
+            body_r if use_i else None,
         )
         self.last = res
         return res

@@ -39,6 +39,12 @@ class Loop:
     degenerate: bool
 
 
+def _reflectivity(scan) -> np.ndarray:
+    """A keyframe scan's per-point reflectivity (NaN where it has none)."""
+    r = getattr(scan, "reflectivity", None)
+    return np.full(len(scan.points), np.nan) if r is None else np.asarray(r, dtype=np.float64)
+
+
 class LoopCloser:
     def __init__(self, cfg: LoopConfig, T_bl: np.ndarray, lidar_cfg: LidarConfig | None = None):
         self.cfg = cfg
@@ -77,26 +83,31 @@ class LoopCloser:
         t_k = keyframes[k].t
         vm = VoxelMap(VoxelMapConfig(voxel_size=0.2, max_points_per_voxel=10, max_distance=60.0))
         near = np.linalg.norm(poses[: len(keyframes), :3, 3] - poses[i, :3, 3], axis=1) < cfg.submap_radius
-        chunks = []
+        chunks, refl = [], []
         for j in np.nonzero(near)[0]:
             sc = keyframes[j].scan
             if sc is None or keyframes[j].t >= t_k - cfg.min_gap_s:
                 continue
             # odometry poses are locally consistent: use them for the submap's geometry
-            chunks.append(
-                host.transform_points(host.inverse(T_i) @ sc.T_odom, np.asarray(voxel_downsample(sc.points, 0.2)))
-            )
+            pts, r = voxel_downsample(sc.points, 0.2, _reflectivity(sc))
+            chunks.append(host.transform_points(host.inverse(T_i) @ sc.T_odom, pts))
+            refl.append(r)
+        use_i = self.lidar_cfg.intensity and any(np.isfinite(r).any() for r in refl)
         if chunks:
-            vm.add(np.concatenate(chunks), np.zeros(3))
+            vm.add(np.concatenate(chunks), np.zeros(3), intensity=np.concatenate(refl) if use_i else None)
         if len(vm) < 200:
             self.rejected.append((i, k, "submap too small"))
             return None
         T_est = host.inverse(poses[i]) @ poses[k]
-        src = np.asarray(voxel_downsample(keyframes[k].scan.points, 0.25))
+        src, src_r = voxel_downsample(keyframes[k].scan.points, 0.25, _reflectivity(keyframes[k].scan))
         # only the part of the scan the submap can cover (fitness then measures agreement,
         # not overlap): within 0.8 submap radii of the candidate, at the estimated pose
-        src = src[np.linalg.norm(host.transform_points(T_est, src), axis=1) < 0.8 * cfg.submap_radius]
-        reg = register(src, vm, T_est, IcpConfig(max_correspondence_distance=0.8))
+        inside = np.linalg.norm(host.transform_points(T_est, src), axis=1) < 0.8 * cfg.submap_radius
+        src, src_r = src[inside], src_r[inside]
+        icp = IcpConfig(
+            max_correspondence_distance=0.8, intensity_weight=self.lidar_cfg.intensity_weight if use_i else 0.0
+        )
+        reg = register(src, vm, T_est, icp, source_intensity=src_r if use_i else None)
         if not reg.converged:
             self.rejected.append((i, k, f"registration: {reg.message}"))
             return None
