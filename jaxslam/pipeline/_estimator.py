@@ -62,9 +62,6 @@ class _Done:
     def __init__(self, value: Any):
         self.value = value
 
-    def done(self) -> bool:
-        return True
-
     def result(self) -> Any:
         return self.value
 
@@ -266,7 +263,9 @@ class Estimator:
             # predicted odometry pose: the last odometry pose moved by the IMU-predicted motion
             T_odom_pred = pred.T.copy() if last is None else last.T_odom @ host.inverse(cur.T) @ pred.T
             try:
-                result = self.lidar.process(t, scan.points, scan.t + scan.point_times, (times, poses), T_odom_pred)
+                result = self.lidar.process(
+                    t, scan.points, scan.t + scan.point_times, (times, poses), T_odom_pred, intensity=scan.intensity
+                )
             except InputFormatError as e:
                 self.warnings[f"lidar: scan rejected ({e})"] += 1
                 result = None
@@ -389,7 +388,9 @@ class Estimator:
         self.timing["imu"] += time.perf_counter() - tk
         # vision: features + relative pose to the previous keyframe image, in a worker thread
         # when configured (SURF runs in XLA, which releases the GIL, so it overlaps the LiDAR
-        # front end on a second core); its factor joins the graph at a later update
+        # front end on a second core); its factors join the graph at the next keyframe's update,
+        # waiting for the worker if it is behind: a fixed lag, so a threaded run is as
+        # deterministic as an unthreaded one and a loaded machine does not delay vision further
         tv = time.perf_counter()
         if self.visual is not None:
             img = self._image_near(t)
@@ -414,7 +415,7 @@ class Estimator:
                     self._vjobs.append(_Done(self._vision_job(kf, img.data, pts, guess)))
             else:
                 self.warnings["camera: no image at a keyframe"] += 1
-            factors += self._collect_vision(wait=False)
+            factors += self._collect_vision(keep=1 if self._executor is not None else 0)
         self.timing["vision"] += time.perf_counter() - tv
         self.keyframes.append(kf)
         # loops
@@ -453,10 +454,11 @@ class Estimator:
         self.timing["vision (worker)"] += time.perf_counter() - t0
         return kf, paired, out
 
-    def _collect_vision(self, wait: bool) -> list:
-        """Factors of the finished vision jobs, in keyframe order."""
+    def _collect_vision(self, keep: int = 0) -> list:
+        """Factors of all vision jobs but the newest ``keep``, in keyframe order (waiting for
+        them to finish)."""
         out: list[Any] = []
-        while self._vjobs and (wait or self._vjobs[0].done()):
+        while len(self._vjobs) > keep:
             kf, paired, vms = self._vjobs.popleft().result()
             for dm in [v for v in vms if isinstance(v, DirectionMeasurement)]:
                 sr, sd = self.cfg.vision.direction_sigmas
@@ -533,7 +535,7 @@ class Estimator:
                 dur = float(np.max(scan.point_times, initial=0.0))
                 t_ref = min(scan.t + 0.5 * dur, self.imu.last_time)
                 self._event(t_ref, scan)
-        late = self._collect_vision(wait=True)
+        late = self._collect_vision()
         if self._executor is not None:
             self._executor.shutdown(wait=True)
         if late:

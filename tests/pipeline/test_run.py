@@ -113,6 +113,13 @@ def test_run_recording_writes_the_results_folder(bag, config, tmp_path) -> None:
     assert len(pts) > 1000 and np.all(np.isfinite(pts))
 
 
+def test_threaded_vision_is_deterministic(records, config) -> None:
+    """The worker's factors join at a fixed keyframe lag: two threaded runs agree exactly."""
+    threaded = config.replace(vision={"threaded": True})
+    a, b = (_run(records, threaded)[1]["poses"] for _ in range(2))
+    np.testing.assert_array_equal(a, b)
+
+
 def test_cli_bad_recording_is_one_line(tmp_path, capsys) -> None:
     from jaxslam.cli import main
 
