@@ -253,6 +253,10 @@ _CHOICES = {
 }
 
 
+_ANY_LENGTH = ("camera_distortion", "pairs")
+"""Tuple fields of any length (the others must keep their default's)."""
+
+
 def _build(cls: type, data: dict[str, Any], where: str) -> Any:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - set(fields))
@@ -262,11 +266,13 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
     for k, v in data.items():
         default = getattr(cls(), k)
         if isinstance(default, tuple):
-            if not isinstance(v, list | tuple) or (len(v) != len(default) and k != "camera_distortion"):
+            if not isinstance(v, list | tuple) or (len(v) != len(default) and k not in _ANY_LENGTH):
                 raise ConfigError(f"{where}.{k}: expected a list of {len(default)} numbers, got {v!r}")
             if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v):
                 raise ConfigError(f"{where}.{k}: expected numbers, got {v!r}")
             v = tuple(v)
+            if k == "pairs" and not (v and all(isinstance(x, int) and x >= 1 for x in v)):
+                raise ConfigError(f"{where}.{k}: expected keyframe offsets >= 1 (integers), got {v!r}")
             if k == "axis_weights" and not all(x > 0 for x in v):
                 raise ConfigError(f"{where}.{k}: weights must be positive, got {v!r}")
         elif isinstance(default, bool):

@@ -243,6 +243,14 @@ def test_wrong_types_raise_more(data):
         config_from_dict(data)
 
 
+def test_pair_lists_take_any_length():
+    cfg = config_from_dict({"vision": {"pairs": [1, 4]}, "lidar": {"pairs": [1, 10]}})
+    assert cfg.vision.pairs == (1, 4) and cfg.lidar.pairs == (1, 10)
+    for bad in ([], [0, 2], [1.5]):
+        with pytest.raises(ConfigError, match="pairs"):
+            config_from_dict({"vision": {"pairs": bad}})
+
+
 def test_replace_unknown_section_raises_config_error():
     with pytest.raises(ConfigError, match="visoin"):
         PipelineConfig().replace(visoin={"enhance": False})
