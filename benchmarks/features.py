@@ -1,12 +1,13 @@
 """SURF (jaxslam, JAX) vs OpenCV SIFT and ORB, with and without enhancement (issue 4, item 5).
 
-    python benchmarks/features.py ../shared/data [--json PATH] [--repeats 3]
+    python benchmarks/features.py ../shared/data [--json PATH] [--repeats 15] [--timing-only]
 
 DIR is the shared data folder (``kitti_mono/``, ``lowlight/sice``, ``lowlight/LIME``). Measures,
 in one run:
 
-* time per image of detect + describe on a 1241x376 KITTI frame (JAX compile time apart), and
-  the same-run ratio SURF / SIFT;
+* time per image of detect + describe on a 1241x376 KITTI frame (JAX compile time apart),
+  every method once per round over ``--repeats`` interleaved rounds: medians, quartiles and
+  the same-run ratio SURF / SIFT (``--timing-only`` stops there);
 * under known homographies (rotations, scalings, a brightness change) of real 512x512 images
   (SICE mid exposures, LIME and DICM crops): repeatability (a keypoint mapped into the other
   image has one within 2.5 px), match accuracy after the ratio test (0.8; correct = mapped
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -127,30 +129,44 @@ def crop512(g):
     return np.ascontiguousarray(g[y : y + 512, x : x + 512])
 
 
+def _stats(ms: list[float]) -> dict:
+    q = np.percentile(ms, [0, 25, 50, 75, 100])
+    return {"median": float(q[2]), "min": float(q[0]), "q1": float(q[1]), "q3": float(q[3]), "max": float(q[4])}
+
+
 def timing(frame: np.ndarray, methods, repeats: int) -> dict:
-    res = {}
+    """Per-image ms of every method on ``frame``, interleaved over ``repeats`` rounds (one
+    call of each per round, so that machine load hits all alike); medians and spread.
+    JAX compile time (first call) apart."""
+    from jaxslam.vision._surf import surf_u8
+
+    res: dict = {}
     t0 = time.perf_counter()
     run_detector("surf", frame)
     res["surf_first_call_s"] = time.perf_counter() - t0
-    from jaxslam.vision._surf import surf_u8
-
     img = jax.numpy.asarray(frame)
-    jax.block_until_ready(surf_u8(img, 100.0, max_keypoints=MAXK, descriptors=False))
-    best = np.inf
-    for _ in range(repeats):
-        t = time.perf_counter()
+
+    def detect_orient():
         jax.block_until_ready(surf_u8(img, 100.0, max_keypoints=MAXK, descriptors=False))
-        best = min(best, time.perf_counter() - t)
-    res["surf_detect_orient_ms"] = 1e3 * best
+
+    t0 = time.perf_counter()
+    detect_orient()
+    res["surf_detect_orient_first_call_s"] = time.perf_counter() - t0
+    calls = {"surf_detect_orient": detect_orient}
     for m in methods:
         det, enh = m.split("+")[0], ("+" + m.split("+")[1]) if "+" in m else ""
-        ENHANCE[enh](frame)  # compile the enhancement
-        best = np.inf
-        for _ in range(repeats):
+        calls[m] = lambda det=det, enh=enh: run_detector(det, ENHANCE[enh](frame))
+        calls[m]()  # compile the enhancement
+    times: dict[str, list[float]] = {k: [] for k in calls}
+    for _ in range(repeats):
+        for k, f in calls.items():
             t = time.perf_counter()
-            run_detector(det, ENHANCE[enh](frame))
-            best = min(best, time.perf_counter() - t)
-        res[m] = 1e3 * best
+            f()
+            times[k].append(1e3 * (time.perf_counter() - t))
+    res["stats_ms"] = {k: _stats(v) for k, v in times.items()}
+    res["ratio_surf_over_sift_per_round"] = _stats([a / b for a, b in zip(times["surf"], times["sift"])])
+    for k, v in res["stats_ms"].items():
+        res[k if k != "surf_detect_orient" else "surf_detect_orient_ms"] = v["median"]
     return res
 
 
@@ -158,19 +174,47 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", type=Path, help="the shared data folder (../shared/data)")
     ap.add_argument("--json", type=Path, help="write the results here")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=15, help="interleaved timing rounds")
     ap.add_argument("--quick", action="store_true", help="fewer images (smoke test)")
+    ap.add_argument("--timing-only", action="store_true", help="only the timing of SURF, SIFT and ORB")
     args = ap.parse_args()
     detectors = ["surf", "sift", "orb"]
     methods = [d + e for d in detectors for e in ENHANCE]
 
     frame = gray(args.data / "kitti_mono/image_l/000000.png")
-    print(f"timing on a {frame.shape[1]}x{frame.shape[0]} KITTI frame (best of {args.repeats}) ...", flush=True)
-    tm = timing(frame, methods, args.repeats)
+    timed = ["surf", "sift", "orb"] if args.timing_only else methods
+    size = f"{frame.shape[1]}x{frame.shape[0]}"
+    print(f"timing on a {size} KITTI frame ({args.repeats} interleaved rounds) ...", flush=True)
+    tm = timing(frame, timed, args.repeats)
     print(f"  SURF first call (JAX compile + run): {tm['surf_first_call_s']:.1f} s")
+    st = tm["stats_ms"]
+    for k in ("surf", "sift", "orb", "surf_detect_orient"):
+        v = st[k]
+        spread = f"quartiles {v['q1']:.1f}-{v['q3']:.1f}, min {v['min']:.1f}, max {v['max']:.1f}"
+        print(f"  {k:<20} median {v['median']:7.1f} ms  ({spread})")
     ratio = tm["surf"] / tm["sift"]
-    print(f"  SURF {tm['surf']:.0f} ms, SIFT {tm['sift']:.0f} ms, ORB {tm['orb']:.0f} ms; SURF/SIFT = {ratio:.2f}")
-    print(f"  SURF detector + orientation only (no descriptors): {tm['surf_detect_orient_ms']:.0f} ms")
+    rr = tm["ratio_surf_over_sift_per_round"]
+    per_round = f"median {rr['median']:.2f}, quartiles {rr['q1']:.2f}-{rr['q3']:.2f}"
+    print(f"  SURF/SIFT = {ratio:.2f} (ratio of medians); per round: {per_round}")
+    print(f"  load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    timing_json = {
+        "frame": "kitti_mono/image_l/000000.png (1241x376)",
+        "surf_first_call_s": tm["surf_first_call_s"],
+        "surf_over_sift": ratio,
+        "surf_over_sift_per_round": rr,
+        "surf_detect_orient_ms": tm["surf_detect_orient_ms"],
+        "sift_ms": tm["sift"],
+        "surf_ms": tm["surf"],
+        "stats_ms": st,
+        "repeats": args.repeats,
+        "load": os.getloadavg(),
+        "device": str(jax.devices()[0]),
+    }
+    if args.timing_only:
+        if args.json:
+            args.json.write_text(json.dumps({"timing": timing_json}, indent=1))
+            print(f"wrote {args.json}")
+        return
 
     sice = sorted((args.data / "lowlight/sice").iterdir())
     if args.quick:
@@ -226,17 +270,7 @@ def main() -> None:
             f"ransac-inl {e['ransac_inlier_ratio']:.3f}",
             flush=True,
         )
-    out = {
-        "methods": results,
-        "timing": {
-            "frame": "kitti_mono/image_l/000000.png (1241x376)",
-            "surf_first_call_s": tm["surf_first_call_s"],
-            "surf_over_sift": ratio,
-            "surf_detect_orient_ms": tm["surf_detect_orient_ms"],
-            "sift_ms": tm["sift"],
-            "device": str(jax.devices()[0]),
-        },
-    }
+    out = {"methods": results, "timing": timing_json}
     print(f"same-run time ratio SURF/SIFT on 1241x376: {ratio:.2f}")
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))

@@ -31,7 +31,7 @@ from ._clahe import clahe_hard_u8, clahe_soft_levels, materialise
 Mode = Literal["hard", "soft"]
 
 
-def _prepare(image, color: bool | None, name: str = "image") -> tuple[jax.Array, bool, bool]:
+def _prepare(image, color: bool | None, name: str = "image") -> tuple[jax.Array | np.ndarray, bool, bool]:
     """Check an image (batch) and return ``(array, is_u8, is_color)``; raise ``ValueError``
     on an unusable one. Concrete float inputs with NaN/inf are refused; traced ones are
     sanitised in the graph (NaN → 0, clip to [0, 1])."""
@@ -62,7 +62,9 @@ def _prepare(image, color: bool | None, name: str = "image") -> tuple[jax.Array,
         raise ValueError(f"{name}: empty image of size {hw[0]}x{hw[1]}")
     if not is_u8 and not isinstance(arr, jax.core.Tracer) and not _all_finite(arr):
         raise ValueError(f"{name}: contains NaN or infinite values")
-    return jnp.asarray(arr), is_u8, bool(color)
+    # numpy arrays go to the jitted functions as they are (their own transfer is faster
+    # than jnp.asarray's, and a jax.Array needs no conversion at all)
+    return arr, is_u8, bool(color)
 
 
 def _all_finite(arr) -> bool:

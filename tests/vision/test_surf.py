@@ -7,6 +7,7 @@ are checked against ``cv2`` at test time.
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -17,7 +18,16 @@ import pytest
 import jaxslam.cli
 from jaxslam.errors import InputFormatError, JaxSlamError
 from jaxslam.vision import detect_and_describe, surf
-from jaxslam.vision._surf import _area_matrix, fast_atan2_deg, gaussian_kernel, surf_u8
+from jaxslam.vision._surf import (
+    _area_matrix,
+    _keypoint_order,
+    _lexsort_keypoints,
+    _window_classes,
+    _window_members,
+    fast_atan2_deg,
+    gaussian_kernel,
+    surf_u8,
+)
 
 cv2 = pytest.importorskip("cv2")
 cKDTree = pytest.importorskip("scipy.spatial").cKDTree
@@ -98,6 +108,50 @@ def test_building_blocks_match_opencv() -> None:
         ours = np.clip(np.rint(A @ a @ A.T), 0, 255)
         ref = cv2.resize(a, (21, 21), interpolation=cv2.INTER_AREA)
         assert np.mean(ours == ref) >= 0.99 and np.abs(ours - ref).max() <= 1
+
+
+def test_orientation_windows_follow_opencvs_rule() -> None:
+    """The 144-bin histogram's window matrix equals OpenCV's test ``|round(angle) - 5 k| < 30
+    or > 330`` for every rounded angle 0..360 and window start ``5 k``."""
+    member = _window_members()
+    for a in range(361):
+        b = a % 360
+        row = member[2 * (b // 5) + (b % 5 > 0)]
+        d = np.abs(a - 5 * np.arange(72))
+        np.testing.assert_array_equal(row, ((d < 30) | (d > 330)).astype(np.float32), err_msg=f"angle {a}")
+
+
+@pytest.mark.parametrize("cap", [1, 7, 40, 64, 200])
+def test_keypoint_order_equals_the_full_sort(cap: int) -> None:
+    """The shortcuts (compaction when few are valid, top-k plus a sort otherwise, the full
+    sort on a tie at the cut) give the full six-key sort's first ``cap`` rows, ties included."""
+    rng = np.random.default_rng(cap)
+    for trial in range(6):
+        n = 150
+        resp = rng.choice(np.float32([5.0, 6.0, 7.0, 8.0]), n) if trial % 2 else rng.random(n, np.float32)
+        kp = {
+            "x": jnp.asarray(rng.integers(0, 4, n).astype(np.float32)),
+            "y": jnp.asarray(rng.integers(0, 4, n).astype(np.float32)),
+            "size": jnp.asarray(rng.integers(9, 12, n).astype(np.float32)),
+            "response": jnp.asarray(resp),
+            "octave": jnp.asarray(rng.integers(0, 2, n).astype(np.int32)),
+            "lap": jnp.asarray(rng.integers(-1, 2, n).astype(np.int32)),
+            "valid": jnp.asarray(rng.random(n) < (0.1, 0.5, 0.9)[trial % 3]),
+        }
+        ref = np.asarray(_lexsort_keypoints(kp))[:cap]
+        got = np.asarray(_keypoint_order(kp, cap))
+        nv = min(int(np.sum(np.asarray(kp["valid"]))), cap)
+        pad = {k: np.concatenate([np.asarray(v), np.zeros(1, np.asarray(v).dtype)]) for k, v in kp.items()}
+        for key in ("x", "y", "size", "response", "octave"):  # equal up to fully tied rows
+            np.testing.assert_array_equal(pad[key][got[:nv]], pad[key][ref[:nv]], err_msg=f"{key} trial {trial}")
+        assert not pad["valid"][got[nv:]].any()  # the rest: invalid rows only
+
+
+def test_window_classes_hold_every_window() -> None:
+    for max_win in (1, 28, 29, 100, 740, 2000):
+        cl = _window_classes(max_win)
+        assert list(cl) == sorted(set(cl)) and cl[0] == 28 and cl[-1] >= max_win
+        assert all(c % 4 == 0 for c in cl) and all(b <= 1.3 * a for a, b in itertools.pairwise(cl))
 
 
 def _repeatability(kp_a, kp_b, M, shape_b, px=2.5):
