@@ -289,9 +289,19 @@ def main() -> None:
     ap.add_argument("--full-solve-every", type=int, default=IncrementalConfig.full_solve_every)
     ap.add_argument("--loop-chi2", type=float, default=IncrementalConfig.loop_chi2)
     ap.add_argument("--relinearize-threshold", type=float, default=IncrementalConfig.relinearize_threshold)
+    ap.add_argument("--full-solve-tol", type=float, default=IncrementalConfig.full_solve_tol)
     ap.add_argument("--checkpoints", type=int, default=10)
     ap.add_argument("--guess", choices=["file", "chain"], default="chain", help="initial value of each new vertex")
+    ap.add_argument(
+        "--sync-dispatch",
+        action="store_true",
+        help="run JAX computations on the calling thread (jax_cpu_enable_async_dispatch=False): "
+        "the solver's small linearisation kernels then skip a thread hand-off that a loaded CPU "
+        "makes cost milliseconds",
+    )
     a = ap.parse_args()
+    if a.sync_dispatch:  # must precede the first JAX computation (read when the CPU client starts)
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
     global GUESS
     GUESS = a.guess
     cfg = IncrementalConfig(
@@ -299,8 +309,11 @@ def main() -> None:
         full_solve_every=a.full_solve_every,
         loop_chi2=a.loop_chi2,
         relinearize_threshold=a.relinearize_threshold,
+        full_solve_tol=a.full_solve_tol,
     )
     results = [bench_file(f, cfg, a.checkpoints) for f in a.files]
+    for r in results:
+        r["jax_sync_dispatch"] = a.sync_dispatch
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(results, fh, indent=2)
