@@ -53,7 +53,12 @@ that returned the bytes and ``byte_time = 10 / baud`` (8N1). The stamp still con
 transmission delay of the cycle (11 bytes per packet), the USB-serial adapter's latency timer
 (FTDI default 16 ms; 1 ms after ``echo 1 > /sys/bus/usb-serial/devices/ttyUSB0/latency_timer``)
 and OS scheduling jitter, none of which is constant: pass a fixed ``latency`` if measured,
-and let the estimator estimate the residual camera/IMU time offset (SPEC §2).
+and let the estimator estimate the residual camera/IMU time offset (SPEC §2). Back-dating
+assumes the bytes came at the baud rate; a read that returns a burst faster than that (a pty,
+a buffering hub) would date a packet before the previous read's last one, so a packet
+dated before the previous one is moved to ``CLAMP_STEP`` (1 µs) after it, but never past its
+own read's time (counted as ``clamped_times``): the stream keeps its order, and its times
+keep increasing as readers require wherever the reads' host times do.
 
 **Commands** are writes to a register: ``FF AA reg lo hi`` (value little-endian). Unlock is
 register 0x69 = 0xB588 (``FF AA 69 88 B5``), save is register 0x00 = 0 (``FF AA 00 00 00``),
@@ -95,6 +100,10 @@ ANGLE_SCALE = math.pi / 32768.0
 QUAT_SCALE = 1.0 / 32768.0
 
 _INT16X4 = struct.Struct("<4h")
+
+
+CLAMP_STEP = 1e-6
+"""Least step (s) between packet times when back-dating would not increase them."""
 
 
 def checksum(data: bytes | bytearray) -> int:
@@ -185,6 +194,7 @@ class WitMotionParser:
             "unpaired_accel",
             "unpaired_gyro",
             "invalid_samples",
+            "clamped_times",
         )
         self.latest: dict[int, WitPacket] = {}
         self._buf = bytearray()
@@ -192,6 +202,7 @@ class WitMotionParser:
         self._chunks: list[tuple[int, float]] = []  # (stream offset one past a read's end, its host time)
         self._locked = False  # the byte before the scan position ended an accepted packet
         self._accel: WitPacket | None = None  # accel packet waiting for its gyro packet
+        self._last_t = -math.inf  # host time of the last packet: packet times increase
 
     def feed(self, data: bytes | bytearray, t_read: float | None = None) -> list[ImuSample]:
         """Parse ``data`` (read at host time ``t_read``, default now); return new samples."""
@@ -256,7 +267,12 @@ class WitMotionParser:
                     pos = i + 1
                     continue
             end = i + PACKET_SIZE
-            pkt = decode_packet(buf[i:end], self._arrival(self._start + end - 1), self._locked)
+            t_pkt = self._arrival(self._start + end - 1)
+            if t_pkt < self._last_t:  # a burst faster than the baud rate (a pty, a USB hub):
+                self.counters.add("clamped_times")  # back-dating must not reorder packets
+                t_pkt = max(t_pkt, min(self._last_t + CLAMP_STEP, self._arrival_read(self._start + end - 1)))
+            self._last_t = t_pkt
+            pkt = decode_packet(buf[i:end], t_pkt, self._locked)
             self.latest[pkt.kind] = pkt
             self.counters.add("packets")
             packets.append(pkt)
@@ -292,6 +308,13 @@ class WitMotionParser:
         if self._accel is not None:
             self.counters.add("unpaired_accel")
             self._accel = None
+
+    def _arrival_read(self, offset: int) -> float:
+        """Host time of the read that returned the byte at stream ``offset``."""
+        for end, t in self._chunks:
+            if offset < end:
+                return t
+        return self._chunks[-1][1]  # pragma: no cover - offset is always inside a chunk
 
     def _arrival(self, offset: int) -> float:
         """Host time at which the byte at stream ``offset`` arrived."""

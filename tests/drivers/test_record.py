@@ -163,8 +163,10 @@ def test_sigkilled_recorder_leaves_all_but_the_last_second(tmp_path):
             k = 0
             while not stop.is_set():
                 data = build_packet(ACCEL, k, 0, 2048) + build_packet(GYRO, 0, 0, k % 100) + build_packet(ANGLE)
-                try:
-                    os.write(master, data)
+                try:  # a pty write may take only part of the bytes when its buffer is full
+                    view = memoryview(data)
+                    while view:
+                        view = view[os.write(master, view) :]
                 except OSError:
                     return
                 imu_sent.append(time.time())

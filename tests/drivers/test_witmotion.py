@@ -207,6 +207,17 @@ def test_host_timestamps_back_dated_by_byte_time():
     assert s.t == pytest.approx(2.0 - (29 - 21) * byte_time)
 
 
+def test_a_burst_faster_than_the_baud_rate_keeps_the_order():
+    """Bytes that arrive faster than the baud rate (a pty) must not be back-dated before the
+    previous read's packets: times are clamped to increase (by 1 us), and counted."""
+    parser = WitMotionParser(byte_time=1e-3)
+    (a,) = parser.feed(cycle(), 1.0)
+    b, c = parser.feed(cycle() * 2, 1.001)  # back-dated, b would be at 1.001 - 0.066
+    assert a.t < b.t < c.t
+    # 2 us after the first read's last packet (its accel packet is clamped first)
+    assert b.t == pytest.approx(1.0 + 2e-6, abs=1e-12) and parser.counters["clamped_times"] >= 1
+
+
 # ----------------------------------------------------------------------------- commands
 
 
