@@ -30,8 +30,14 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # tuner per test), which JAX's in-memory caches key by function identity and compile again;
 # the on-disk cache keys by the program itself, so each distinct program compiles once per
 # session. Results are unchanged (the same executable), and nothing outlives the session.
-_CACHE_DIR = tempfile.mkdtemp(prefix="jaxslam-test-jit-")
-atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
+# Under pytest-xdist the workers share the controller's folder (they inherit its
+# environment), so a program compiled by one worker is read by the other; only the process
+# that made the folder removes it.
+_CACHE_DIR = os.environ.get("JAXSLAM_TEST_JIT_DIR", "")
+if not _CACHE_DIR or not os.path.isdir(_CACHE_DIR):
+    _CACHE_DIR = tempfile.mkdtemp(prefix="jaxslam-test-jit-")
+    os.environ["JAXSLAM_TEST_JIT_DIR"] = _CACHE_DIR
+    atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", _CACHE_DIR)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
