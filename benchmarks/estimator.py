@@ -53,9 +53,10 @@ def main() -> None:
     ap.add_argument("--no-ablations", action="store_true", help="only the full configuration")
     ap.add_argument("--workdir", default="runs/bench_estimator")
     ap.add_argument("--json", metavar="PATH")
+    ap.add_argument("--config", metavar="YAML", help="start from this configuration instead of the defaults")
     args = ap.parse_args()
 
-    from jaxslam.pipeline import PipelineConfig, run_recording
+    from jaxslam.pipeline import PipelineConfig, load_config, run_recording
 
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)
@@ -68,10 +69,10 @@ def main() -> None:
         for seed in args.seeds:
             bag = simulate(work, seed, lighting, args.length)
             for name in names:
-                cfg = PipelineConfig()
+                cfg = load_config(args.config) if args.config else PipelineConfig()
                 for section, changes in ABLATIONS[name].items():
                     cfg = cfg.replace(**{section: changes})
-                out = work / f"{bag.stem}_{name}"
+                out = work / f"{bag.stem}_{name}{'_' + Path(args.config).stem if args.config else ''}"
                 m = run_recording(bag, out, cfg, plots=(name == "full"))
                 row = {
                     "run": f"seed{seed} {lighting} {name}",

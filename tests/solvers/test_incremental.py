@@ -359,17 +359,24 @@ def test_numpy_retract_matches_jaxslam_lie(vtype: str) -> None:
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
 
 
+def _full_step(solver) -> np.ndarray:
+    """The whole-graph linear step (all variables' deltas, concatenated); the solver's state
+    is restored afterwards."""
+    saved = [(s.delta.copy(), s.x.copy()) for s in solver._store_list]
+    solver._window_solve(0, {})
+    step = np.concatenate([s.delta[: s.n].ravel() for s in solver._store_list])
+    for s, (d, x) in zip(solver._store_list, saved):
+        s.delta[:], s.x[:] = d, x
+    return step
+
+
 def test_block_and_scalar_assembly_give_the_same_full_step() -> None:
     graph = read_g2o(DATA / "smallGrid3D.g2o")
     solver, _ = _replay(graph, IncrementalConfig(full_solve_every=10**6, window=3))
     steps = []
     for blockwise in (True, False):
         solver.block_assembly = blockwise
-        saved = [(s.delta.copy(), s.x.copy()) for s in solver._store_list]
-        solver._window_solve(0, {})
-        steps.append(np.concatenate([s.delta[: s.n].ravel() for s in solver._store_list]))
-        for s, (d, x) in zip(solver._store_list, saved):
-            s.delta[:], s.x[:] = d, x
+        steps.append(_full_step(solver))
     assert np.abs(steps[0]).max() > 1e-6
     np.testing.assert_allclose(steps[0], steps[1], rtol=0, atol=1e-9 * np.abs(steps[1]).max())
 
@@ -416,11 +423,7 @@ def test_blocks_stay_current_and_give_the_assembled_full_step() -> None:
     steps = []
     for off in (False, True):
         solver._blocks_off = off
-        saved = [(s.delta.copy(), s.x.copy()) for s in solver._store_list]
-        solver._window_solve(0, {})
-        steps.append(np.concatenate([s.delta[: s.n].ravel() for s in solver._store_list]))
-        for s, (d, x) in zip(solver._store_list, saved):
-            s.delta[:], s.x[:] = d, x
+        steps.append(_full_step(solver))
     solver._blocks_off = False
     assert np.abs(steps[0]).max() > 1e-8
     np.testing.assert_allclose(steps[0], steps[1], rtol=0, atol=1e-8 * np.abs(steps[1]).max())
