@@ -159,7 +159,7 @@ def _check_options(clip_limit, tile_grid, mode) -> tuple[int, int]:
     return gy, gx
 
 
-def _empty(img: jax.Array, color: bool, mode: str) -> bool:
+def _empty(img: jax.Array | np.ndarray, color: bool, mode: str) -> bool:
     return int(np.prod(img.shape[: img.ndim - (3 if color else 2)])) == 0
 
 
