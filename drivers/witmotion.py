@@ -270,7 +270,7 @@ class WitMotionParser:
             t_pkt = self._arrival(self._start + end - 1)
             if t_pkt < self._last_t:  # a burst faster than the baud rate (a pty, a USB hub):
                 self.counters.add("clamped_times")  # back-dating must not reorder packets
-                t_pkt = max(t_pkt, min(self._last_t + CLAMP_STEP, self._arrival_read(self._start + end - 1)))
+                t_pkt = max(t_pkt, min(self._last_t + CLAMP_STEP, self._chunk(self._start + end - 1)[1]))
             self._last_t = t_pkt
             pkt = decode_packet(buf[i:end], t_pkt, self._locked)
             self.latest[pkt.kind] = pkt
@@ -309,19 +309,17 @@ class WitMotionParser:
             self.counters.add("unpaired_accel")
             self._accel = None
 
-    def _arrival_read(self, offset: int) -> float:
-        """Host time of the read that returned the byte at stream ``offset``."""
+    def _chunk(self, offset: int) -> tuple[int, float]:
+        """``(end, t_read)`` of the read that returned the byte at stream ``offset``."""
         for end, t in self._chunks:
             if offset < end:
-                return t
-        return self._chunks[-1][1]  # pragma: no cover - offset is always inside a chunk
+                return end, t
+        return self._chunks[-1]  # pragma: no cover - offset is always inside a chunk
 
     def _arrival(self, offset: int) -> float:
         """Host time at which the byte at stream ``offset`` arrived."""
-        for end, t in self._chunks:
-            if offset < end:
-                return t - (end - 1 - offset) * self.byte_time
-        return self._chunks[-1][1]  # pragma: no cover - offset is always inside a chunk
+        end, t = self._chunk(offset)
+        return t - (end - 1 - offset) * self.byte_time
 
 
 # ----------------------------------------------------------------------------- commands

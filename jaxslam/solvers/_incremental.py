@@ -59,7 +59,6 @@ import scipy.sparse as sp
 from ..core import Factor, MarginalFactor, Values, Variable, linearize
 from ..errors import GraphError
 from ..lie import mm, mT
-from ._blocks import HAVE_CHOLMOD as _BLOCKS_CHOLMOD
 from ._blocks import BlockInformation, NotPositiveDefinite, pairs
 from ._blocks import one_blas_thread as _one_blas_thread
 from ._nls import Solver, SolverConfig, SolverResult
@@ -415,7 +414,7 @@ class IncrementalSolver:
         # pose graphs (one tangent size, no marginalisation): H kept as blocks between full
         # solves (created at the first large full solve; None until then or when off)
         self._blocks: BlockInformation | None = None
-        self._blocks_off = self.config.lag is not None or self._method != "cholmod" or not _BLOCKS_CHOLMOD
+        self._blocks_off = self.config.lag is not None or self._method != "cholmod"
         self._store_list: list[_Store] = []
 
     # --- variables and factors -------------------------------------------------------------
@@ -686,8 +685,12 @@ class IncrementalSolver:
         """The linear model's cost ``|r + J delta|^2 / 2`` of constraints ``idx``."""
         if idx.size == 0:
             return 0.0
-        e = g.r[idx] + np.einsum("mrt,mt->mr", g.J[idx], self._stacked_delta(g, idx))
+        e = self._linear_residual(g, idx)
         return 0.5 * float(np.einsum("mr,mr->", e, e))
+
+    def _linear_residual(self, g: _Group, idx: np.ndarray) -> np.ndarray:
+        """``r + J delta`` of constraints ``idx`` (the linear model's whitened residual)."""
+        return g.r[idx] + np.einsum("mrt,mt->mr", g.J[idx], self._stacked_delta(g, idx))
 
     def _stacked_delta(self, g: _Group, idx: np.ndarray) -> np.ndarray:
         return np.concatenate([self._store_list[s].delta[g.rows[idx, k]] for k, s in enumerate(g.slots)], axis=1)
@@ -761,7 +764,7 @@ class IncrementalSolver:
             if idx.size == 0:
                 continue
             J = g.J[idx]
-            e = g.r[idx] + np.einsum("mrt,mt->mr", J, self._stacked_delta(g, idx))
+            e = self._linear_residual(g, idx)
             model += 0.5 * float(np.einsum("mr,mr->", e, e))
             base = np.stack([wmap[si][g.rows[idx, k]] for k, si in enumerate(g.slots)], axis=1)  # (m, k)
             col = np.concatenate([base[:, k : k + 1] + np.arange(g.tds[k]) for k in range(len(g.slots))], axis=1)
@@ -843,7 +846,7 @@ class IncrementalSolver:
             if g.n == 0:
                 continue
             # every constraint (a removed one has J = r = 0 and adds nothing)
-            e = g.r[: g.n] + np.einsum("mrt,mt->mr", g.J[: g.n], self._stacked_delta(g, np.arange(g.n)))
+            e = self._linear_residual(g, np.arange(g.n))
             model += 0.5 * float(np.einsum("mr,mr->", e, e))
             cols = np.concatenate(
                 [
@@ -1143,7 +1146,7 @@ class IncrementalSolver:
             g = self._group_list[gi]
             idx = np.asarray(sorted(cs), np.int64)
             # linear model around the *current* estimate: e = r + J delta
-            e = g.r[idx] + np.einsum("mrt,mt->mr", g.J[idx], self._stacked_delta(g, idx))
+            e = self._linear_residual(g, idx)
             col = np.concatenate(
                 [
                     np.asarray([order[(si, int(r))] for r in g.rows[idx, k]])[:, None] + np.arange(g.tds[k])
