@@ -82,12 +82,13 @@ def _run(args: argparse.Namespace, recording: str | Path) -> dict[str, Any]:
         unit="s",
         disable=args.quiet,
         desc="run",
-        bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}]",
+        # total is unknown (None) until the first progress report: the *_fmt fields show "?"
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} s [{elapsed}<{remaining}]",
     )
 
     def progress(done: float, total: float) -> None:
-        bar.total = round(total, 1)
-        bar.n = round(done, 1)
+        bar.total = round(total)
+        bar.n = round(done)
         bar.refresh()
 
     try:

@@ -18,7 +18,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import InputFormatError
+from ..errors import ConfigError, InputFormatError
 from ..io import open_recording, write_kitti, write_ply, write_tum
 from ..io._reindex import reindex
 from ..io._rosbag import _unindexed_ros1
@@ -180,12 +180,16 @@ def run_recording(
             a = ev.ape(gt, traj, align="se3")
             g_at, e_at = ev.associate(gt, traj)
             aligned, _ = ev.align(g_at, e_at, "se3")  # the loop error needs the estimate in gt's frame
-            rp = ev.rpe(gt, traj, delta=1.0, unit="m", pose_relation="trans")  # per metre travelled
+            try:
+                rpe_rmse = ev.rpe(gt, traj, delta=1.0, unit="m", pose_relation="trans").stats["rmse"]  # per metre
+            except ConfigError as e:  # a run shorter than the 1 m delta: no pair; the rest still holds
+                rpe_rmse = None
+                metrics["warnings"][f"eval: no RPE ({e})"] = 1
             metrics.update(
                 ape_rmse_m=a.stats["rmse"],
                 ape_mean_m=a.stats["mean"],
                 ape_max_m=a.stats["max"],
-                rpe_rmse=rp.stats["rmse"],
+                rpe_rmse=rpe_rmse,
                 loop_error_m=ev.loop_error(aligned, g_at, associated=True),
                 loop_error_ratio=ev.loop_error_ratio(aligned, g_at, associated=True),
                 path_length_m=ev.path_length(gt),

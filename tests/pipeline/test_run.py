@@ -120,6 +120,22 @@ def test_threaded_vision_is_deterministic(records, config) -> None:
     np.testing.assert_array_equal(a, b)
 
 
+def test_cli_run_shows_progress(bag, tmp_path, capsys) -> None:
+    """``jaxslam run`` without ``-q``: the progress bar starts with an unknown total (it once
+    crashed formatting None). Four seconds travel less than RPE's 1 m delta: the run still
+    finishes with its metrics (RPE none, said in the warnings; it once failed at the end)."""
+    from jaxslam.cli import main
+
+    out = tmp_path / "out"
+    assert main(["run", str(bag), "-o", str(out), "--max-seconds", "4", "--no-plots"]) == 0
+    err = capsys.readouterr().err
+    assert "run:" in err and "/? s" in err and " s [" in err, err[-500:]
+    assert (out / "trajectory_tum.txt").stat().st_size > 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["rpe_rmse"] is None and m["ape_rmse_m"] < 0.1
+    assert any(k.startswith("eval: no RPE") for k in m["warnings"]), m["warnings"]
+
+
 def test_cli_bad_recording_is_one_line(tmp_path, capsys) -> None:
     from jaxslam.cli import main
 
