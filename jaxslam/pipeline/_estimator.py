@@ -395,8 +395,9 @@ class Estimator:
         if self.visual is not None:
             img = self._image_near(t)
             if img is not None:
-                pts = None
+                pts = scan_pts = None
                 if scan is not None and self.lidar is not None:
+                    scan_pts = scan.points  # the keyframe's own scan (body frame): metric scale
                     # depth from the local map (the scans of the last metres), not one scan: the
                     # LiDAR's 25-degree band covers a fraction of the camera's view
                     pts = host.transform_points(host.inverse(scan.T_odom), self.lidar.map.points())
@@ -410,9 +411,9 @@ class Estimator:
                         )
                         guess[off] = host.inverse(T_prev) @ pred.T
                 if self._executor is not None:
-                    self._vjobs.append(self._executor.submit(self._vision_job, kf, img.data, pts, guess))
+                    self._vjobs.append(self._executor.submit(self._vision_job, kf, img.data, pts, guess, scan_pts))
                 else:
-                    self._vjobs.append(_Done(self._vision_job(kf, img.data, pts, guess)))
+                    self._vjobs.append(_Done(self._vision_job(kf, img.data, pts, guess, scan_pts)))
             else:
                 self.warnings["camera: no image at a keyframe"] += 1
             factors += self._collect_vision(keep=1 if self._executor is not None else 0)
@@ -432,12 +433,20 @@ class Estimator:
         self.timing["solver"] += time.perf_counter() - ts
         self.state = self._state(k)
 
-    def _vision_job(self, kf: Keyframe, image: np.ndarray, pts: np.ndarray | None, guess: dict[int, np.ndarray]):
+    def _vision_job(
+        self,
+        kf: Keyframe,
+        image: np.ndarray,
+        pts: np.ndarray | None,
+        guess: dict[int, np.ndarray],
+        scan_pts: np.ndarray | None = None,
+    ):
         """Worker: features of ``kf`` and relative poses from earlier image keyframes
         (``vision.pairs`` keyframes back: 1 = the previous one)."""
         assert self.visual is not None
         t0 = time.perf_counter()
-        feats = self.visual.features(kf.index, kf.t, image, pts)
+        scale_scan = self.visual.cfg.scale_depth == "scan"
+        feats = self.visual.features(kf.index, kf.t, image, pts, scan_pts if scale_scan else None)
         recent = {f.kf: f for f in self._recent_features}
         out = []
         paired = False

@@ -57,6 +57,8 @@ class KeyframeFeatures:
     """Camera-frame 3-D points from LiDAR depth (N, 3), NaN where there is none."""
     track: np.ndarray
     """Track id per feature (N,)."""
+    X_scan: np.ndarray | None = None
+    """Camera-frame 3-D points from the keyframe's own scan only (N, 3), NaN where none."""
 
 
 @dataclasses.dataclass
@@ -137,7 +139,16 @@ class VisualFrontend:
         self.T_cb = host.inverse(self.T_bc)
         self._next_track = 0
 
-    def features(self, kf: int, t: float, image: np.ndarray, points_body: np.ndarray | None) -> KeyframeFeatures:
+    def features(
+        self,
+        kf: int,
+        t: float,
+        image: np.ndarray,
+        points_body: np.ndarray | None,
+        scan_body: np.ndarray | None = None,
+    ) -> KeyframeFeatures:
+        """Features of one keyframe image, with depth from ``points_body`` (the local map in
+        the body frame) and, separately, from ``scan_body`` (its own scan) when given."""
         cfg = self.cfg
         img = np.asarray(image)
         if img.ndim == 3:
@@ -149,14 +160,19 @@ class VisualFrontend:
         kp, desc = detect_and_describe(img, cfg.detector, cfg.hessian_threshold, cfg.max_keypoints)  # type: ignore[arg-type]
         uv = kp[:, :2].astype(np.float64)
         xn = undistort_normalized(uv, self.K, self.rig.camera_distortion)
-        X = np.full((len(uv), 3), np.nan)
-        if points_body is not None and len(points_body):
-            pc = host.transform_points(self.T_cb, points_body)
-            pc = pc[(pc[:, 2] > 0.3) & (pc[:, 2] < cfg.max_depth)]
-            X = plane_depth(xn, pc, cfg.depth_radius_px / self.f)
+        X = self._depth(xn, points_body)
+        X_scan = self._depth(xn, scan_body) if scan_body is not None else None
         track = np.arange(self._next_track, self._next_track + len(uv))
         self._next_track += len(uv)
-        return KeyframeFeatures(kf, t, uv, xn, desc, kp[:, 6].astype(np.float64), X, track)
+        return KeyframeFeatures(kf, t, uv, xn, desc, kp[:, 6].astype(np.float64), X, track, X_scan)
+
+    def _depth(self, xn: np.ndarray, points_body: np.ndarray | None) -> np.ndarray:
+        """Camera-frame points of the features ``xn`` from LiDAR points in the body frame."""
+        if points_body is None or not len(points_body):
+            return np.full((len(xn), 3), np.nan)
+        pc = host.transform_points(self.T_cb, points_body)
+        pc = pc[(pc[:, 2] > 0.3) & (pc[:, 2] < self.cfg.max_depth)]
+        return plane_depth(xn, pc, self.cfg.depth_radius_px / self.f)
 
     def relative(
         self, a: KeyframeFeatures, b: KeyframeFeatures, T_ab_guess: np.ndarray
@@ -222,7 +238,12 @@ class VisualFrontend:
             return None
         X, x, ia, ib, e = X[inl], x[inl], ia[inl], ib[inl], e[inl]
         if cfg.depth_scale:
-            T_cbca = self._scale_from_depth(T_cbca, X, b.X[ib])
+            scaled = None
+            if cfg.scale_depth == "scan" and a.X_scan is not None and b.X_scan is not None:
+                scaled = self._scale_from_depth(T_cbca, a.X_scan[ia], b.X_scan[ib])
+            if scaled is None:
+                scaled = self._scale_from_depth(T_cbca, X, b.X[ib])
+            T_cbca = scaled if scaled is not None else T_cbca
         J = _projection_jacobian(host.transform_points(T_cbca, X))
         sigma = cfg.pixel_sigma / self.f
         H = np.einsum("nki,nkj->ij", J, J) / sigma**2 * cfg.information_scale
@@ -244,17 +265,18 @@ class VisualFrontend:
         )
 
     @staticmethod
-    def _scale_from_depth(T_ba: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
+    def _scale_from_depth(T_ba: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray | None:
         """Replace the translation's length along its direction by the one the LiDAR depths of
         *both* keyframes give (``Xb - R Xa``, a robust mean): reprojecting noisy 3-D points of
         one frame into the other is an errors-in-variables fit whose length comes out biased
         short (measured ~1 % on the simulated tunnel); the 3-D-3-D difference is linear in the
-        depths, so their noise averages out. Needs 10 points with depth in both frames."""
-        ok = np.isfinite(Xb[:, 0])
+        depths, so their noise averages out. Needs 10 points with depth in both frames (else
+        None)."""
+        ok = np.isfinite(Xa[:, 0]) & np.isfinite(Xb[:, 0])
         t = T_ba[:3, 3]
         n = np.linalg.norm(t)
         if ok.sum() < 10 or n < 1e-3:
-            return T_ba
+            return None
         d = Xb[ok] - Xa[ok] @ T_ba[:3, :3].T  # per-point translation estimates
         u = t / n
         proj = d @ u

@@ -231,6 +231,7 @@ def test_wrong_types_raise(data):
     "data",
     [
         {"vision": {"detector": 5}},
+        {"vision": {"scale_depth": "lidar"}},
         {"rig": {"lidar_model": None}},
         {"imu": {"noise_scale": True}},
         {"vision": {"max_keypoints": 10.5}},
@@ -552,3 +553,52 @@ def test_plane_depth_nan_at_a_corner():
     np.testing.assert_allclose(X[0], [0.0, 0.0, 3.0], atol=1e-9)
     np.testing.assert_allclose(X[1], [0.3, 0.15, 3.0], atol=1e-9)
     np.testing.assert_allclose(X[2], [1.0, 0.0, 1 / 0.6], atol=1e-9)
+
+
+@pytest.mark.parametrize("scale_depth", ["scan", "map"])
+def test_visual_length_from_each_keyframes_own_scan(scale_depth):
+    """Depths from a local map whose scans sit at LiDAR-odometry poses repeat the odometry's
+    along-axis error in their keyframe-to-keyframe difference (here: the map of keyframe b is
+    1 cm too deep, 4 % of the 0.25 m step); each keyframe's own scan is metric. With
+    ``scale_depth: scan`` the length comes from the scan depths (a band of the features),
+    with ``map`` it inherits the map's error."""
+    from jaxslam.pipeline._visual import KeyframeFeatures, VisualFrontend
+
+    cfg = PipelineConfig()
+    vis = dataclasses.replace(cfg.vision, scale_depth=scale_depth, ransac=False)
+    fe = VisualFrontend(vis, cfg.rig)
+    rng = np.random.default_rng(21)
+    # points on the walls of a 3 m tunnel ahead of camera a (camera frame: z forward)
+    n = 400
+    z = rng.uniform(2.0, 12.0, n)
+    side = rng.integers(0, 4, n)
+    u = rng.uniform(-1.5, 1.5, n)
+    x = np.where(side == 0, -1.5, np.where(side == 1, 1.5, u))
+    y = np.where(side == 2, -1.5, np.where(side == 3, 1.5, np.where(side < 2, u, 0.0)))
+    Xa = np.c_[x, y, z]
+    step = np.array([0.02, -0.01, 0.25])  # camera b = camera a moved (no rotation)
+    Xb = Xa - step
+
+    def feats(kf, X, X_map, X_scan, track):
+        xn = X[:, :2] / X[:, 2:]
+        uv = xn * fe.K[0, 0] + fe.K[:2, 2]  # distortion is not used by relative()
+        desc = np.eye(n, 64, dtype=np.float32) + 0.01 * np.arange(n)[:, None].astype(np.float32)
+        return KeyframeFeatures(kf, float(kf), uv, xn, desc, np.ones(n), X_map, track, X_scan)
+
+    band = np.abs(Xa[:, 1] / Xa[:, 2]) < 0.1  # the LiDAR's band: a fraction of the features
+    scan_a = np.where(band[:, None], Xa, np.nan)
+    scan_b = np.where(band[:, None], Xb, np.nan)
+    map_b = Xb + np.array([0.0, 0.0, 0.01])  # b's map 1 cm too deep along the axis
+    a = feats(0, Xa, Xa, scan_a, np.arange(n))
+    b = feats(1, Xb, map_b, scan_b, np.arange(n, 2 * n))
+    T_cacb = np.eye(4)
+    T_cacb[:3, 3] = step
+    T_ab = fe.T_bc @ T_cacb @ fe.T_cb
+    vm = fe.relative(a, b, T_ab)
+    assert vm is not None and band.sum() >= 10
+    length = np.linalg.norm(vm.T[:3, 3])
+    true = np.linalg.norm(step)
+    if scale_depth == "scan":
+        assert abs(length / true - 1) < 1e-3, length / true
+    else:
+        assert abs(length / true - 1) > 0.02, length / true  # the map's error passes through
