@@ -257,7 +257,7 @@ def _plain(x: Any) -> Any:
 
 _CHOICES = {
     "detector": ("surf", "sift", "orb"),
-    "scale_depth": ("scan", "map"),
+    "scale_depth": ("map", "scan"),
     "mode": ("incremental", "batch"),
     "lidar_model": ("hap", "ring16"),
 }

@@ -397,7 +397,8 @@ class Estimator:
             if img is not None:
                 pts = scan_pts = None
                 if scan is not None and self.lidar is not None:
-                    scan_pts = scan.points  # the keyframe's own scan (body frame): metric scale
+                    if self.cfg.vision.scale_depth == "scan":
+                        scan_pts = scan.points  # the keyframe's own scan (body frame): metric scale
                     # depth from the local map (the scans of the last metres), not one scan: the
                     # LiDAR's 25-degree band covers a fraction of the camera's view
                     pts = host.transform_points(host.inverse(scan.T_odom), self.lidar.map.points())
@@ -442,11 +443,11 @@ class Estimator:
         scan_pts: np.ndarray | None = None,
     ):
         """Worker: features of ``kf`` and relative poses from earlier image keyframes
-        (``vision.pairs`` keyframes back: 1 = the previous one)."""
+        (``vision.pairs`` keyframes back: 1 = the previous one); ``scan_pts``, the keyframe's own
+        scan, only when the visual length is to come from it (``vision.scale_depth: scan``)."""
         assert self.visual is not None
         t0 = time.perf_counter()
-        scale_scan = self.visual.cfg.scale_depth == "scan"
-        feats = self.visual.features(kf.index, kf.t, image, pts, scan_pts if scale_scan else None)
+        feats = self.visual.features(kf.index, kf.t, image, pts, scan_pts)
         recent = {f.kf: f for f in self._recent_features}
         out = []
         paired = False
