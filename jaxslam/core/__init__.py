@@ -22,6 +22,7 @@ from ._variables import (
     Pose3Var,
     PoseVar,
     Rot3Var,
+    ScaleVar,
     Variable,
     VelocityVar,
 )
@@ -43,6 +44,7 @@ __all__ = [
     "PoseVar",
     "RobustKernel",
     "Rot3Var",
+    "ScaleVar",
     "Tukey",
     "Values",
     "Variable",

@@ -14,6 +14,7 @@ Point3Var       R^3                      3
 Point2Var       R^2                      2
 VelocityVar     R^3                      3      world-frame velocity
 BiasVar         R^6                      6      IMU bias (acc xyz, gyro xyz), GTSAM order
+ScaleVar        R^1                      1      log of a length scale (a sensor's scale bias)
 ==============  =======================  =====  =======================================
 """
 
@@ -135,6 +136,14 @@ class BiasVar(Variable):
 
     param_dim = 6
     tangent_dim = 6
+
+
+class ScaleVar(Variable):
+    """The natural log of a length scale, e.g. the factor by which a visual odometry's
+    translations are short (``exp(0) = 1``: unbiased)."""
+
+    param_dim = 1
+    tangent_dim = 1
 
 
 PoseVar = Pose3Var

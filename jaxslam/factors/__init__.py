@@ -7,8 +7,9 @@ from ._imu import BiasRandomWalkFactor, ImuFactor, ImuFactorComponentWise, predi
 from ._imu_params import PreintegrationParams
 from ._preintegration import ImuIntervals, PreintegratedImu, cut_imu_stream, preintegrate, preintegrate_stream
 from ._reprojection import ReprojectionFactor, pinhole_project, project_pinhole
+from ._scaled import ScaledBetweenFactor
 
-__all__ = ["BetweenFactor", "PriorFactor", "RelativeDirectionFactor"]
+__all__ = ["BetweenFactor", "PriorFactor", "RelativeDirectionFactor", "ScaledBetweenFactor"]
 __all__ += ["ReprojectionFactor", "pinhole_project", "project_pinhole"]
 __all__ += [
     "BiasRandomWalkFactor",
