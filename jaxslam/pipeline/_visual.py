@@ -43,6 +43,20 @@ def undistort_normalized(uv: np.ndarray, K: np.ndarray, dist: tuple[float, ...],
     return np.stack([x, y], 1)
 
 
+def distort_normalized(xn: np.ndarray, dist: tuple[float, ...]) -> np.ndarray:
+    """Radial-tangential distortion (``k1, k2, p1, p2``) of normalised coordinates (..., 2):
+    the forward model :func:`undistort_normalized` inverts."""
+    x, y = xn[..., 0], xn[..., 1]
+    if not any(dist):
+        return np.stack([x, y], -1)
+    k1, k2, p1, p2 = [*list(dist), 0, 0, 0, 0][:4]
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2
+    return np.stack(
+        [x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], -1
+    )
+
+
 @dataclasses.dataclass
 class KeyframeFeatures:
     kf: int
@@ -59,6 +73,8 @@ class KeyframeFeatures:
     """Track id per feature (N,)."""
     X_scan: np.ndarray | None = None
     """Camera-frame 3-D points from the keyframe's own scan only (N, 3), NaN where none."""
+    normal: np.ndarray | None = None
+    """Unit normals (camera frame, facing it) of the LiDAR planes behind ``X`` (N, 3)."""
 
 
 @dataclasses.dataclass
@@ -91,14 +107,22 @@ class DirectionMeasurement:
 
 
 def plane_depth(
-    xn: np.ndarray, pts_c: np.ndarray, radius: float, min_points: int = 5, max_rms: float = 0.03, k: int = 10
-) -> np.ndarray:
+    xn: np.ndarray,
+    pts_c: np.ndarray,
+    radius: float,
+    min_points: int = 5,
+    max_rms: float = 0.03,
+    k: int = 10,
+    normals: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """3-D points (N, 3) where each normalised ray ``(x, y, 1)`` meets the plane fitted to the
     camera-frame LiDAR points ``pts_c`` projecting within ``radius`` (normalised units); NaN
-    where fewer than ``min_points`` are near or the fit is not planar (RMS above ``max_rms`` m)."""
+    where fewer than ``min_points`` are near or the fit is not planar (RMS above ``max_rms`` m).
+    With ``normals``, also the planes' unit normals (N, 3), facing the camera."""
     out = np.full((len(xn), 3), np.nan)
+    nrm = np.full((len(xn), 3), np.nan)
     if len(pts_c) < min_points or not len(xn):
-        return out
+        return (out, nrm) if normals else out
     proj = pts_c[:, :2] / pts_c[:, 2:3]
     tree = cKDTree(proj)
     d, idx = tree.query(xn, k=k, distance_upper_bound=radius)
@@ -106,7 +130,7 @@ def plane_depth(
     cnt = ok.sum(1)
     sel = np.nonzero(cnt >= min_points)[0]
     if not len(sel):
-        return out
+        return (out, nrm) if normals else out
     idx_s = np.where(ok[sel], idx[sel], 0)
     w = ok[sel].astype(np.float64)
     P = pts_c[idx_s]  # (S, k, 3)
@@ -125,7 +149,11 @@ def plane_depth(
     spread = np.sqrt(np.maximum(evals[:, 2], 0)) + 0.05
     good &= np.linalg.norm(X - c, axis=1) < 3 * spread
     out[sel[good]] = X[good]
-    return out
+    if not normals:
+        return out
+    n = n * -np.sign(np.einsum("si,si->s", n, rays))[:, None]  # facing the camera
+    nrm[sel[good]] = n[good]
+    return out, nrm
 
 
 class VisualFrontend:
@@ -160,19 +188,20 @@ class VisualFrontend:
         kp, desc = detect_and_describe(img, cfg.detector, cfg.hessian_threshold, cfg.max_keypoints)  # type: ignore[arg-type]
         uv = kp[:, :2].astype(np.float64)
         xn = undistort_normalized(uv, self.K, self.rig.camera_distortion)
-        X = self._depth(xn, points_body)
-        X_scan = self._depth(xn, scan_body) if scan_body is not None else None
+        X, normal = self._depth(xn, points_body)
+        X_scan = self._depth(xn, scan_body)[0] if scan_body is not None else None
         track = np.arange(self._next_track, self._next_track + len(uv))
         self._next_track += len(uv)
-        return KeyframeFeatures(kf, t, uv, xn, desc, kp[:, 6].astype(np.float64), X, track, X_scan)
+        return KeyframeFeatures(kf, t, uv, xn, desc, kp[:, 6].astype(np.float64), X, track, X_scan, normal)
 
-    def _depth(self, xn: np.ndarray, points_body: np.ndarray | None) -> np.ndarray:
-        """Camera-frame points of the features ``xn`` from LiDAR points in the body frame."""
+    def _depth(self, xn: np.ndarray, points_body: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-frame points of the features ``xn`` from LiDAR points in the body frame, and
+        the normals of the planes they lie on (NaN where none)."""
         if points_body is None or not len(points_body):
-            return np.full((len(xn), 3), np.nan)
+            return np.full((len(xn), 3), np.nan), np.full((len(xn), 3), np.nan)
         pc = host.transform_points(self.T_cb, points_body)
         pc = pc[(pc[:, 2] > 0.3) & (pc[:, 2] < self.cfg.max_depth)]
-        return plane_depth(xn, pc, self.cfg.depth_radius_px / self.f)
+        return plane_depth(xn, pc, self.cfg.depth_radius_px / self.f, normals=True)  # type: ignore[return-value]
 
     def relative(
         self, a: KeyframeFeatures, b: KeyframeFeatures, T_ab_guess: np.ndarray
@@ -204,39 +233,11 @@ class VisualFrontend:
             return None
         ia, ib = ia[has], ib[has]
         T_cacb = self.T_cb @ T_ab_guess @ self.T_bc  # camera a <- camera b
-        T_cbca = host.inverse(T_cacb)
-        X, x = a.X[ia], b.xn[ib]
-        delta = 2.0 / self.f  # Huber threshold: 2 px
-        for it in range(12):
-            Xc = host.transform_points(T_cbca, X)
-            z = Xc[:, 2]
-            ok = z > 0.1
-            r = (Xc[:, :2] / np.where(ok, z, 1.0)[:, None] - x) * ok[:, None]
-            e = np.linalg.norm(r, axis=1)
-            w = np.where(e <= delta, 1.0, delta / np.maximum(e, 1e-12)) * ok
-            J = _projection_jacobian(Xc)
-            H = np.einsum("n,nki,nkj->ij", w, J, J)
-            g = np.einsum("n,nki,nk->i", w, J, r)
-            try:
-                step = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
-            except np.linalg.LinAlgError:
-                return None
-            T_cbca = host.se3_exp(step) @ T_cbca
-            if np.max(np.abs(step)) < 1e-9:
-                break
-            if it == 5:  # drop gross outliers once the pose has settled
-                Xc = host.transform_points(T_cbca, X)
-                e = np.linalg.norm(Xc[:, :2] / Xc[:, 2:3] - x, axis=1)
-                inl = e < 3.0 / self.f
-                if inl.sum() < cfg.min_inliers:
-                    return None
-                X, x, ia, ib = X[inl], x[inl], ia[inl], ib[inl]
-        Xc = host.transform_points(T_cbca, X)
-        e = np.linalg.norm(Xc[:, :2] / Xc[:, 2:3] - x, axis=1)
-        inl = e < 2.0 / self.f
-        if inl.sum() < cfg.min_inliers:
+        fit = motion_only(a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers)
+        if fit is None:
             return None
-        X, x, ia, ib, e = X[inl], x[inl], ia[inl], ib[inl], e[inl]
+        T_cbca, keep, e = fit
+        X, x, ia, ib = a.X[ia][keep], b.xn[ib][keep], ia[keep], ib[keep]
         if cfg.depth_scale:
             scaled = None
             if cfg.scale_depth == "scan" and a.X_scan is not None and b.X_scan is not None:
@@ -287,6 +288,49 @@ class VisualFrontend:
         out = T_ba.copy()
         out[:3, 3] = t + (length - float(t @ u)) * u
         return out
+
+
+def motion_only(
+    X: np.ndarray, x: np.ndarray, T_ba: np.ndarray, f: float, min_inliers: int, iterations: int = 12
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Motion-only Gauss-Newton (Huber, 2 px) of camera b's pose: points ``X`` (N, 3) in camera
+    a, their normalised observations ``x`` (N, 2) in camera b, ``T_ba`` (b <- a) the start.
+    Gross outliers (3 px) are dropped once the pose has settled; returns ``(T_ba, kept, e)``,
+    the indices of the final inliers (2 px) and their errors (normalised units), or None when
+    fewer than ``min_inliers`` remain or the system is singular."""
+    idx = np.arange(len(X))
+    delta = 2.0 / f  # Huber threshold: 2 px
+    T = T_ba
+    for it in range(iterations):
+        Xc = host.transform_points(T, X)
+        z = Xc[:, 2]
+        ok = z > 0.1
+        r = (Xc[:, :2] / np.where(ok, z, 1.0)[:, None] - x) * ok[:, None]
+        e = np.linalg.norm(r, axis=1)
+        w = np.where(e <= delta, 1.0, delta / np.maximum(e, 1e-12)) * ok
+        J = _projection_jacobian(Xc)
+        H = np.einsum("n,nki,nkj->ij", w, J, J)
+        g = np.einsum("n,nki,nk->i", w, J, r)
+        try:
+            step = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
+        except np.linalg.LinAlgError:
+            return None
+        T = host.se3_exp(step) @ T
+        if np.max(np.abs(step)) < 1e-9:
+            break
+        if it == 5:  # drop gross outliers once the pose has settled
+            Xc = host.transform_points(T, X)
+            e = np.linalg.norm(Xc[:, :2] / Xc[:, 2:3] - x, axis=1)
+            inl = e < 3.0 / f
+            if inl.sum() < min_inliers:
+                return None
+            X, x, idx = X[inl], x[inl], idx[inl]
+    Xc = host.transform_points(T, X)
+    e = np.linalg.norm(Xc[:, :2] / np.where(Xc[:, 2:3] > 0.1, Xc[:, 2:3], np.nan) - x, axis=1)
+    inl = e < 2.0 / f
+    if inl.sum() < min_inliers:
+        return None
+    return T, idx[inl], e[inl]
 
 
 def _projection_jacobian(Xc: np.ndarray) -> np.ndarray:
