@@ -134,6 +134,7 @@ def main() -> None:
                             "degenerate_scans",
                             "lidar_scans",
                             "loops_accepted",
+                            "visual_loops_accepted",
                             "loops_rejected",
                             "loops_false",
                             "keyframes",

@@ -128,8 +128,9 @@ def print_summary(m: dict[str, Any], out: str | Path, paper: bool = False) -> No
         f"reprojection RMSE {_fmt(m.get('reproj_rmse_px'), '.2f')} px" + (" (paper: 210/222, 1.10 px)" if paper else "")
     )
     print(
-        f"LiDAR: {m['lidar_scans']} scans, {m['degenerate_scans']} degenerate; loops {m['loops_accepted']} accepted, "
-        f"{m['loops_rejected']} rejected" + (f", {m['loops_false']} false" if m.get("loops_false") is not None else "")
+        f"LiDAR: {m['lidar_scans']} scans, {m['degenerate_scans']} degenerate; loops {m['loops_accepted']} accepted "
+        f"({m.get('visual_loops_accepted', 0)} visual), {m['loops_rejected']} rejected"
+        + (f", {m['loops_false']} false" if m.get("loops_false") is not None else "")
     )
     print(
         f"time: {m['runtime_s']:.1f} s for {m['sequence_duration_s']:.1f} s of recording "

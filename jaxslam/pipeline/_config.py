@@ -163,6 +163,16 @@ class VisionConfig:
     scale_from_lidar: bool = True
     """Calibrate the visual translation length against LiDAR odometry on keyframe pairs where
     the LiDAR is not degenerate (ratio of lengths, after 20 pairs, clipped to +-5 %)."""
+    scale_variable: bool = True
+    """Estimate the visual odometry's length scale in the graph: each keyframe gets a
+    :class:`~jaxslam.core.ScaleVar` (log scale) joined to the previous one by a random walk,
+    and visual factors are :class:`~jaxslam.factors.ScaledBetweenFactor` on it, so a length
+    bias of the features is taken out wherever anything else sees the lengths (the LiDAR
+    facing the end wall, loops) instead of shortening the whole trajectory."""
+    scale_prior_sigma: float = 0.05
+    """Prior sigma of the first keyframe's log scale."""
+    scale_walk_sigma: float = 0.001
+    """Random walk of the log scale per square-root metre travelled."""
     direction_fallback: bool = False
     """Where features have no LiDAR depth, add a scale-free factor (rotation + translation
     direction from the essential matrix, ``RelativeDirectionFactor``) instead of nothing.
@@ -208,6 +218,60 @@ class LoopConfig:
     axis_weights: tuple[float, float] = (1.0, 1.0)
     """Information multipliers of the factor's (rotation, translation) blocks, after
     ``information_scale`` (sigmas divided by their square roots); learned by ``jaxslam tune``."""
+    visual: bool = True
+    """Visual loops by projection (:mod:`jaxslam.pipeline._visual_loop`): an old keyframe's
+    features with LiDAR depth found again in the current image, from any heading (an
+    out-and-back run sees each wall patch from the mirrored position), give a full relative
+    pose, the tunnel axis included. Needs vision and LiDAR."""
+    visual_every: int = 2
+    """Look for visual loops at every n-th keyframe."""
+    visual_radius: float = 12.0
+    """Old keyframes within this distance of the current estimate (m) are candidates."""
+    visual_candidates: int = 2
+    """Verify at most this many candidates per keyframe (most predicted-visible points first)."""
+    visual_min_depth: float = 1.5
+    visual_max_depth: float = 12.0
+    """Only points at this range from the current camera (m, along its axis) are searched."""
+    visual_drift_per_m: float = 0.005
+    """Along-track drift expected per metre travelled since the old keyframe: three times it
+    is the search range, and it is the visual loops' consistency gate (as ``drift_per_m``
+    for LiDAR loops)."""
+    visual_min_shift: float = 0.3
+    visual_max_shift: float = 1.0
+    """Bounds of the search range along the direction of travel (m)."""
+    visual_patch: int = 7
+    """Side of the square patch (samples) laid on a point's LiDAR plane and compared by NCC."""
+    visual_shift_step: float = 0.02
+    """Step of the search along the direction of travel (m)."""
+    visual_min_contrast: float = 4.0
+    """Patches flatter than this grey-level standard deviation are not searched."""
+    visual_max_points: int = 150
+    """Search at most this many points per candidate (the most contrasted)."""
+    visual_blur_px: float = 2.0
+    visual_search_spacing_px: float = 3.0
+    """The search along the track compares blurred images (Gaussian, px) with patches spaced
+    this far apart (px in the old image): coarse, so that the prediction's error across the
+    track (a few pixels) does not hide the peak; the 2-D location refines it."""
+    visual_min_ncc: float = 0.8
+    """A point votes with its best shift when its NCC peak reaches this."""
+    visual_shift_tol: float = 0.03
+    """Candidates whose shifts agree within this (m) vote together."""
+    visual_hypotheses: int = 3
+    """Peaks of the search along the track that are aligned and compared (aliases of a
+    periodic structure peak too)."""
+    visual_peak_ratio: float = 0.75
+    """Refuse the loop when the runner-up hypothesis, converged elsewhere, aligns more than
+    this fraction as many patches as the best (a repetitive wall)."""
+    visual_min_inliers: int = 20
+    visual_max_sigma: float = 0.05
+    """Refuse a visual loop whose along-track sigma (below) exceeds this (m)."""
+    visual_information_scale: float = 0.25
+    """Multiplies the along-track information of a visual loop (from the reprojection Hessian
+    of its aligned patch centres, 1 px)."""
+    visual_rotation_sigma_deg: float = 10.0
+    visual_loose_sigma: float = 1.0
+    """A visual loop measures the along-track translation; its rotation (held at the
+    prediction) and the other translation directions get these loose sigmas (deg, m)."""
 
 
 @dataclasses.dataclass(frozen=True)

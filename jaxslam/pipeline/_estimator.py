@@ -36,7 +36,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..core import BiasVar, Cauchy, Gaussian, Pose3Var, Values, VelocityVar
+from ..core import BiasVar, Cauchy, Gaussian, Pose3Var, ScaleVar, Values, VelocityVar
 from ..errors import InputFormatError
 from ..factors import (
     BetweenFactor,
@@ -45,6 +45,7 @@ from ..factors import (
     PreintegrationParams,
     PriorFactor,
     RelativeDirectionFactor,
+    ScaledBetweenFactor,
 )
 from ..lie import SE3, host
 from ..measurements import Image, ImuSample, LidarScan, PoseStamped, PositionFix
@@ -54,6 +55,7 @@ from ._imu import ImuBuffer, NavState, gravity_alignment, preintegrate_interval,
 from ._lidar_frontend import LidarOdometry, ScanResult, axis_weighted, information_for_factor
 from ._loop import LoopCloser
 from ._visual import DirectionMeasurement, KeyframeFeatures, VisualFrontend, VisualMeasurement
+from ._visual_loop import LoopQuery, VisualLoop, VisualLoopCloser
 
 
 class _Done:
@@ -118,6 +120,14 @@ class Estimator:
         self.visual = VisualFrontend(config.vision, rig) if config.vision.enabled else None
         self.loops = (
             LoopCloser(config.loop, self.T_bl, config.lidar) if (config.loop.enabled and config.lidar.enabled) else None
+        )
+        self._scaled_vision = self.visual is not None and config.vision.scale_variable
+        self.visual_loops = (
+            VisualLoopCloser(
+                config.loop, self.visual.T_bc, self.visual.f, rig.camera_size, rig.K(), rig.camera_distortion
+            )
+            if self.visual is not None and self.lidar is not None and config.loop.enabled and config.loop.visual
+            else None
         )
         self.solver = IncrementalSolver(IncrementalConfig(mode=config.solver.mode))  # type: ignore[arg-type]
         self.keyframes: list[Keyframe] = []
@@ -322,6 +332,12 @@ class Estimator:
             bsig = np.array([icfg.acc_bias_sigma] * 3 + [icfg.gyro_bias_sigma if self._still_start else 0.05] * 3)
             b_prior = PriorFactor.create(BiasVar(np.array([0])), pred.bias[None], Gaussian.diagonal(jnp.asarray(bsig)))
             factors.append(self._tag("prior", b_prior))
+            if self._scaled_vision:
+                values[ScaleVar(np.array([0]))] = np.zeros((1, 1))
+                s_prior = PriorFactor.create(
+                    ScaleVar(np.array([0])), np.zeros(1), Gaussian.isotropic(1, self.cfg.vision.scale_prior_sigma)
+                )
+                factors.append(self._tag("scale", s_prior))
         else:
             prev = self.keyframes[-1]
             acc, gyro, dt, gap = self.imu.interval(prev.t, t)
@@ -351,6 +367,13 @@ class Estimator:
                 VelocityVar(ids[1]): pred.v[None],
                 BiasVar(ids[1]): pred.bias[None],
             }
+            if self._scaled_vision:  # the visual length scale random-walks with the distance travelled
+                values[ScaleVar(ids[1])] = self.solver.value(ScaleVar, k - 1)[None]
+                step = max(float(np.linalg.norm(pred.T[:3, 3] - self.state.T[:3, 3])), 0.05)
+                walk = Gaussian.isotropic(1, self.cfg.vision.scale_walk_sigma * np.sqrt(step))
+                factors.append(
+                    self._tag("scale", BetweenFactor.create(ScaleVar(ids[0]), ScaleVar(ids[1]), np.zeros(1), walk))
+                )
             if (
                 scan is not None
                 and prev.scan is not None
@@ -411,10 +434,12 @@ class Estimator:
                             self.state.T if off == 1 else host.params_to_matrix(self.solver.value(Pose3Var, k - off))
                         )
                         guess[off] = host.inverse(T_prev) @ pred.T
+                query = self._loop_query(k, t, pred.T) if self.visual_loops and self.visual_loops.due(k) else None
+                args = (kf, img.data, pts, guess, scan_pts, query)
                 if self._executor is not None:
-                    self._vjobs.append(self._executor.submit(self._vision_job, kf, img.data, pts, guess, scan_pts))
+                    self._vjobs.append(self._executor.submit(self._vision_job, *args))
                 else:
-                    self._vjobs.append(_Done(self._vision_job(kf, img.data, pts, guess, scan_pts)))
+                    self._vjobs.append(_Done(self._vision_job(*args)))
             else:
                 self.warnings["camera: no image at a keyframe"] += 1
             factors += self._collect_vision(keep=1 if self._executor is not None else 0)
@@ -441,15 +466,17 @@ class Estimator:
         pts: np.ndarray | None,
         guess: dict[int, np.ndarray],
         scan_pts: np.ndarray | None = None,
+        query: LoopQuery | None = None,
     ):
         """Worker: features of ``kf`` and relative poses from earlier image keyframes
         (``vision.pairs`` keyframes back: 1 = the previous one); ``scan_pts``, the keyframe's own
-        scan, only when the visual length is to come from it (``vision.scale_depth: scan``)."""
+        scan, only when the visual length is to come from it (``vision.scale_depth: scan``);
+        visual loops to older keyframes when ``query`` is given."""
         assert self.visual is not None
         t0 = time.perf_counter()
         feats = self.visual.features(kf.index, kf.t, image, pts, scan_pts)
         recent = {f.kf: f for f in self._recent_features}
-        out = []
+        out: list[VisualMeasurement | DirectionMeasurement | VisualLoop] = []
         paired = False
         for off in sorted(guess):
             prev = recent.get(kf.index - off)
@@ -459,10 +486,25 @@ class Estimator:
             vm = self.visual.relative(prev, feats, guess[off])
             if vm is not None:
                 out.append(vm)
+        if query is not None and self.visual_loops is not None and kf.image is not None:
+            feats_old, images_old = {}, {}
+            for o in self.keyframes[: query.k]:
+                if o.features is not None and o.image is not None:
+                    feats_old[o.index], images_old[o.index] = o.features, o.image
+            out += self.visual_loops.detect(query, kf.image, feats_old, images_old)
         kf.features = feats
         self._recent_features.append(feats)
         self.timing["vision (worker)"] += time.perf_counter() - t0
         return kf, paired, out
+
+    def _loop_query(self, k: int, t: float, T_pred: np.ndarray) -> LoopQuery:
+        """The estimate the vision worker searches visual loops from keyframe ``k`` with: all
+        keyframe poses (the new one at its prediction ``T_pred``), their times and the distance
+        travelled up to each."""
+        poses = np.concatenate([self._poses()[:k], T_pred[None]])
+        steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+        times = np.array([kf.t for kf in self.keyframes[:k]] + [t])
+        return LoopQuery(k, t, poses, np.concatenate([[0.0], np.cumsum(steps)]), times)
 
     def _collect_vision(self, keep: int = 0) -> list:
         """Factors of all vision jobs but the newest ``keep``, in keyframe order (waiting for
@@ -470,6 +512,10 @@ class Estimator:
         out: list[Any] = []
         while len(self._vjobs) > keep:
             kf, paired, vms = self._vjobs.popleft().result()
+            for lp in [v for v in vms if isinstance(v, VisualLoop)]:
+                robust = Cauchy(self.cfg.loop.cauchy_scale)
+                out.append(self._tag("loop", _between(lp.i, lp.j, lp.T, lp.information, robust=robust)))
+                self.edges.append(("loop closure", lp.i, lp.j, lp.T, lp.information))
             for dm in [v for v in vms if isinstance(v, DirectionMeasurement)]:
                 sr, sd = self.cfg.vision.direction_sigmas
                 noise = Gaussian.diagonal(jnp.asarray([sr] * 3 + [sd] * 2))
@@ -490,7 +536,17 @@ class Estimator:
                     vm.T = vm.T.copy()
                     vm.T[:3, 3] *= self._vo_scale
                 info = axis_weighted(vm.information, self.cfg.vision.axis_weights)
-                out.append(self._tag("vision", _between(vm.i, vm.j, vm.T, info)))
+                if self._scaled_vision:
+                    scaled = ScaledBetweenFactor.create(
+                        Pose3Var(np.array([vm.i])),
+                        Pose3Var(np.array([vm.j])),
+                        ScaleVar(np.array([vm.j])),
+                        host.matrix_to_params(vm.T)[None],
+                        Gaussian.from_information(jnp.asarray(info[None])),
+                    )
+                    out.append(self._tag("vision", scaled))
+                else:
+                    out.append(self._tag("vision", _between(vm.i, vm.j, vm.T, info)))
                 self.edges.append(("visual odometry", vm.i, vm.j, vm.T, info))
                 self.visual_edges.append(vm)
                 kf.registered = True

@@ -45,6 +45,20 @@ def _reflectivity(scan) -> np.ndarray:
     return np.full(len(scan.points), np.nan) if r is None else np.asarray(r, dtype=np.float64)
 
 
+def drift_gate(
+    T_meas: np.ndarray, info: np.ndarray, T_est: np.ndarray, travelled: float, cfg: LoopConfig
+) -> tuple[bool, float]:
+    """The consistency gate of a loop measurement ``T_meas`` (information ``info``) against
+    the estimated relative pose ``T_est``: chi^2 of their difference under the measurement's
+    covariance plus the odometry drift expected over ``travelled`` metres (``drift_per_m``
+    in metres, a tenth of it in radians; at least 2 cm). Returns (accepted, chi^2)."""
+    e = host.se3_log(host.inverse(T_meas) @ T_est)
+    drift = max(cfg.drift_per_m * travelled, 0.02)
+    cov = np.linalg.inv(info) + np.diag([drift / 10] * 3 + [drift] * 3) ** 2
+    m2 = float(e @ np.linalg.solve(cov, e))
+    return m2 <= cfg.chi2_gate, m2
+
+
 class LoopCloser:
     def __init__(self, cfg: LoopConfig, T_bl: np.ndarray, lidar_cfg: LidarConfig | None = None):
         self.cfg = cfg
@@ -118,12 +132,9 @@ class LoopCloser:
             information_for_factor(reg.strong_information(), np.eye(4), self.lidar_cfg, cfg.information_scale),
             cfg.axis_weights,
         )
-        e = host.se3_log(host.inverse(reg.T) @ T_est)
         travelled = float(np.sum(np.linalg.norm(np.diff(poses[i : k + 1, :3, 3], axis=0), axis=1)))
-        drift = max(cfg.drift_per_m * travelled, 0.02)
-        cov = np.linalg.inv(info) + np.diag([drift / 10] * 3 + [drift] * 3) ** 2
-        m2 = float(e @ np.linalg.solve(cov, e))
-        if m2 > cfg.chi2_gate:
+        ok, m2 = drift_gate(reg.T, info, T_est, travelled, cfg)
+        if not ok:
             self.rejected.append((i, k, f"inconsistent with odometry (chi2 {m2:.1f})"))
             return None
         loop = Loop(i, k, reg.T, info, reg.fitness, reg.rmse, m2, reg.degenerate)

@@ -60,12 +60,13 @@ def factor_residuals(est: Estimator, poses: np.ndarray) -> dict[str, np.ndarray]
 def false_loops(
     est: Estimator, gt_poses: np.ndarray | None, trans_tol: float = 0.3, rot_tol_deg: float = 3.0
 ) -> int | None:
-    """Accepted loops whose measurement disagrees with ground truth in the directions the loop
-    constrains (the tunnel-axis direction a degenerate loop does not measure is ignored)."""
-    if est.loops is None or gt_poses is None:
+    """Accepted loops (LiDAR and visual) whose measurement disagrees with ground truth in the
+    directions the loop constrains (the tunnel-axis direction a degenerate loop does not
+    measure is ignored)."""
+    if (est.loops is None and est.visual_loops is None) or gt_poses is None:
         return None
     bad = 0
-    for lp in est.loops.accepted:
+    for lp in accepted_loops(est):
         T_gt = host.inverse(gt_poses[lp.i]) @ gt_poses[lp.j]
         e = host.se3_log(host.inverse(lp.T) @ T_gt)
         evals, evecs = np.linalg.eigh(lp.information)
@@ -74,6 +75,11 @@ def false_loops(
         if np.linalg.norm(e_s[3:]) > trans_tol or np.degrees(np.linalg.norm(e_s[:3])) > rot_tol_deg:
             bad += 1
     return bad
+
+
+def accepted_loops(est: Estimator) -> list[Any]:
+    """Every accepted loop, LiDAR and visual (each has ``i``, ``j``, ``T``, ``information``)."""
+    return [*(est.loops.accepted if est.loops else []), *(est.visual_loops.accepted if est.visual_loops else [])]
 
 
 def run_recording(
@@ -166,8 +172,11 @@ def run_recording(
         "sequence_duration_s": float(min(t_end, est.t_last) - t_begin) if est.t_first is not None else 0.0,
         "degenerate_scans": lidar.degenerate if lidar else 0,
         "lidar_scans": lidar.processed if lidar else 0,
-        "loops_accepted": len(est.loops.accepted) if est.loops else 0,
-        "loops_rejected": len(est.loops.rejected) if est.loops else 0,
+        "loops_accepted": len(accepted_loops(est)),
+        "loops_rejected": (len(est.loops.rejected) if est.loops else 0)
+        + (len(est.visual_loops.rejected) if est.visual_loops else 0),
+        "visual_loops_accepted": len(est.visual_loops.accepted) if est.visual_loops else 0,
+        "visual_loops_attempted": est.visual_loops.attempts if est.visual_loops else 0,
         "visual_scale": est._vo_scale,
         "scale_free_visual_factors": est.direction_edges,
         "mapping": stats,
