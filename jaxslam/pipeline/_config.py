@@ -263,6 +263,9 @@ class LoopConfig:
     """Refuse the loop when the runner-up hypothesis, converged elsewhere, aligns more than
     this fraction as many patches as the best (a repetitive wall)."""
     visual_min_inliers: int = 20
+    visual_max_cross: float = 0.05
+    """Refuse a visual loop whose alignment moved the prediction across the track (laterally
+    or vertically, where the LiDAR is reliable) by more than this (m)."""
     visual_max_sigma: float = 0.05
     """Refuse a visual loop whose along-track sigma (below) exceeds this (m)."""
     visual_information_scale: float = 0.25

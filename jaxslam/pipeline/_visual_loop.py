@@ -209,6 +209,8 @@ class VisualLoopCloser:
         outside the image or next to a NaN pixel."""
         shape = u.shape
         n = int(np.prod(shape))
+        if n == 0:
+            return np.zeros(shape)
         cols = 1024
         rows = -(-n // cols)
         mu = np.full(rows * cols, -10.0, np.float32)
@@ -261,6 +263,8 @@ class VisualLoopCloser:
         keep = np.isfinite(sd) & (sd > cfg.visual_min_contrast)
         top = np.nonzero(keep)[0][np.argsort(-sd[keep])][: cfg.visual_max_points]  # the most contrasted
         ref, grid, pts = ref[top], grid[top], pts[top]
+        if not len(pts):
+            return shifts, np.zeros((len(shifts), 0)), pts
         a = self.T_cb[:3, :3] @ np.array([1.0, 0.0, 0.0])  # travel direction in camera k
         Xk = grid @ T_ki[:3, :3].T + T_ki[:3, 3]  # (P, G, 3) at the prediction
         # camera k displaced by s a: the points move by -s a (S, P, G), one coordinate at a time
@@ -403,6 +407,15 @@ class VisualLoopCloser:
             self.rejected.append((i, k, f"ambiguous: {tried[0][0]} and {tried[1][0]} patches align at two shifts"))
             return None
         _, _, T, pts, good, ncc_pts = tried[0]
+        # the prediction's lateral and vertical come from the LiDAR (the walls, floor, ceiling
+        # pin them to a centimetre or two): an alignment that needed to move them far
+        # compensated a rotation error (right after a turn on the spot) or matched the wrong
+        # thing, and its along-track shift cannot be trusted either
+        d = T[:3, 3] - T_ki[:3, 3]
+        cross = float(np.linalg.norm(d - (d @ a) * a))
+        if cross > cfg.visual_max_cross:
+            self.rejected.append((i, k, f"moved {cross:.3f} m across the track"))
+            return None
         Xc = host.transform_points(T, fi.X[pts[good]])
         x = Xc[:, :2] / Xc[:, 2:3]  # where the aligned patches' centres are
         fit = translation_only(fi.X[pts[good]], x, T, self.f)

@@ -150,3 +150,14 @@ def test_plane_depth_normals_face_the_camera():
     assert ok.sum() > 40
     np.testing.assert_allclose(X[ok], P[:50][ok], atol=1e-9)
     np.testing.assert_allclose(n[ok], np.tile([-1.0, 0.0, 0.0], (ok.sum(), 1)), atol=1e-9)
+
+
+def test_dark_or_flat_images_give_no_loop_and_no_error(scene):
+    """A black current frame (camera dark), a flat old frame: nothing to compare, no loop."""
+    rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
+    closer = _closer(rig)
+    black = np.zeros_like(img_cur)
+    assert closer.detect(_query(T_old, T_cur), black, {0: f_old}, {0: img_old}) == []
+    flat = np.full_like(img_old, 128)
+    assert closer.detect(_query(T_old, T_cur), img_cur, {0: f_old}, {0: flat}) == []
+    assert len(closer.rejected) == 2
