@@ -42,7 +42,10 @@ def deskew(points, point_times, motion: Motion, reference_time: float = 0.0, tol
     if not np.all(np.isfinite(tau)):
         raise InputFormatError("point_times has non-finite values")
     if isinstance(motion, tuple | list):
-        R, t = _sampled(motion, np.append(tau, reference_time), tolerance)
+        Rk, wf, t = _sampled(motion, np.append(tau, reference_time), tolerance)
+        R_ref = Rk[-1] @ so3_exp(wf[-1])
+        world = np.einsum("nij,nj->ni", Rk[:-1], _rotate(wf[:-1], p)) + t[:-1]
+        return (world - t[-1]) @ R_ref
     else:
         xi = np.asarray(motion, dtype=np.float64)
         if xi.shape != (6,) or not np.all(np.isfinite(xi)):
@@ -50,12 +53,22 @@ def deskew(points, point_times, motion: Motion, reference_time: float = 0.0, tol
         T_ref = se3_exp(reference_time * xi)
         world = _screw(p, tau, xi)
         return (world - T_ref[:3, 3]) @ T_ref[:3, :3]
-    R_ref, t_ref = R[-1], t[-1]
-    world = np.einsum("nij,nj->ni", R[:-1], p) + t[:-1]
-    return (world - t_ref) @ R_ref
 
 
-def _sampled(motion, times: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+def _rotate(w: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``Exp(w_i) p_i`` per point by Rodrigues' formula on vectors (no per-point matrices)."""
+    th = np.linalg.norm(w, axis=1)
+    small = th < 1e-8
+    safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(safe) / safe)[:, None]
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)[:, None]
+    wxp = np.cross(w, p)
+    return p + a * wxp + b * np.cross(w, wxp)
+
+
+def _sampled(motion, times: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per time: the bracketing sample's rotation ``R_k`` (N, 3, 3), the slerp increment
+    ``f w_k`` (N, 3) (the rotation is ``R_k Exp(f w_k)``) and the translation (N, 3)."""
     if len(motion) != 3:
         raise InputFormatError("sampled motion must be (rotations (K,3,3), translations (K,3), times (K,))")
     Rs, ts, tk = (np.asarray(m, dtype=np.float64) for m in motion)
@@ -75,15 +88,14 @@ def _sampled(motion, times: np.ndarray, tolerance: float) -> tuple[np.ndarray, n
         )
     tc = np.clip(times, tk[0], tk[-1])
     if K == 1:
-        return np.broadcast_to(Rs[0], (len(tc), 3, 3)), np.broadcast_to(ts[0], (len(tc), 3))
+        return np.broadcast_to(Rs[0], (len(tc), 3, 3)), np.zeros((len(tc), 3)), np.broadcast_to(ts[0], (len(tc), 3))
     # slerp per point: R_k Exp(f w_k), w_k = Log(R_k^T R_k+1), vectorised (scipy's Slerp costs
     # ~7 ms per 11k-point scan, this ~1 ms)
     k = np.clip(np.searchsorted(tk, tc, side="right") - 1, 0, K - 2)
     f = (tc - tk[k]) / (tk[k + 1] - tk[k])
     w = so3_log(np.einsum("kji,kjl->kil", Rs[:-1], Rs[1:]))
-    R = Rs[k] @ so3_exp(f[:, None] * w[k])
     t = ts[k] + f[:, None] * (ts[k + 1] - ts[k])
-    return R, t
+    return Rs[k], f[:, None] * w[k], t
 
 
 def _screw(p: np.ndarray, tau: np.ndarray, xi: np.ndarray) -> np.ndarray:

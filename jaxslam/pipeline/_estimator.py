@@ -491,7 +491,9 @@ class Estimator:
             for o in self.keyframes[: query.k]:
                 if o.features is not None and o.image is not None:
                     feats_old[o.index], images_old[o.index] = o.features, o.image
+            tq = time.perf_counter()
             out += self.visual_loops.detect(query, kf.image, feats_old, images_old)
+            self.timing["visual loop (worker)"] += time.perf_counter() - tq
         kf.features = feats
         self._recent_features.append(feats)
         self.timing["vision (worker)"] += time.perf_counter() - t0

@@ -89,11 +89,12 @@ def propagate(buf: ImuBuffer, state: NavState, t_end: float, gravity: np.ndarray
     ba, bg = state.bias[:3], state.bias[3:]
     out_R, out_p, stamps = [R.copy()], [p.copy()], [state.t]
     t = state.t
+    dR = host.so3_exp((gyro - bg) * dt[:, None])  # all increments at once (one call, not per sample)
     for k in range(len(dt)):
         a_w = R @ (acc[k] - ba) + gravity
         p = p + v * dt[k] + 0.5 * a_w * dt[k] ** 2
         v = v + a_w * dt[k]
-        R = R @ host.so3_exp((gyro[k] - bg) * dt[k])
+        R = R @ dR[k]
         t += dt[k]
         if times is not None:
             out_R.append(R.copy())
