@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from .._pytree import register_typed
 from ._noise import Gaussian
 from ._robust import RobustKernel
 from ._variables import Variable
@@ -44,7 +45,7 @@ def factor_dataclass(cls: F) -> F:
     """Make a Factor subclass a frozen keyword-only dataclass registered as a PyTree."""
     dc: Any = dataclasses.dataclass(frozen=True, kw_only=True)(cls)
     names = [f.name for f in dataclasses.fields(dc)]
-    jax.tree_util.register_dataclass(dc, data_fields=names, meta_fields=[])
+    register_typed(dc, names)
     return dc
 
 

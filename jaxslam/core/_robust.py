@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 from jax import Array
+
+from .._pytree import register_typed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,7 +25,7 @@ class RobustKernel:
 
     def __init_subclass__(cls, **kwargs: object) -> None:
         super().__init_subclass__(**kwargs)
-        jax.tree_util.register_dataclass(cls, data_fields=["k"], meta_fields=[])
+        register_typed(cls, ["k"])
 
     def loss(self, x: Array) -> Array:
         raise NotImplementedError

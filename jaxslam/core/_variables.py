@@ -23,11 +23,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, ClassVar
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .._pytree import register_typed
 from ..lie import SE2, SE3, SO3, LieGroup
 
 
@@ -46,7 +46,7 @@ class Variable:
 
     def __init_subclass__(cls, **kwargs: object) -> None:
         super().__init_subclass__(**kwargs)
-        jax.tree_util.register_dataclass(cls, data_fields=["ids"], meta_fields=[])
+        register_typed(cls, ["ids"])  # see jaxslam._pytree: types must not compare equal
 
     def __post_init__(self) -> None:
         # Only user-facing containers are validated: PyTree unflattening passes tracers,

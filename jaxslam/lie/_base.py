@@ -11,9 +11,10 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar, TypeVar
 
-import jax
 import jax.numpy as jnp
 from jax import Array
+
+from .._pytree import register_typed
 
 G = TypeVar("G", bound="LieGroup")
 
@@ -31,7 +32,7 @@ class LieGroup:
 
     def __init_subclass__(cls, **kwargs: object) -> None:
         super().__init_subclass__(**kwargs)
-        jax.tree_util.register_dataclass(cls, data_fields=["params"], meta_fields=[])
+        register_typed(cls, ["params"])
 
     # --- construction -------------------------------------------------------------------
     @classmethod

@@ -6,29 +6,40 @@ run passes every wall patch twice, the second time facing the other way; a plana
 from the mirrored position (the same distance ahead, the opposite heading) looks much the same
 to the camera: the same side faces it, the same foreshortening, the same lamps. So features
 of an old keyframe, which carry 3-D points from LiDAR depth, can be found again in the current
-image and give a full 6-DOF relative pose, the axis included.
+image and measure where along the axis the current camera is.
 
 Appearance alone cannot find them (a repetitive wall matches everywhere; measured on the
-simulated tunnel: ~10 % of ratio-test matches right), so the search is guided by the estimate,
-as ORB-SLAM's search by projection is:
+simulated tunnel: ~10 % of guided SURF matches right across headings), so the search is guided
+by the estimate and photometric:
 
 1. candidates: old keyframes (``min_gap_s`` older, within ``visual_radius``) whose 3-D points
    project into the current camera at the predicted pose, in front of it and at a similar
-   distance (SURF's scale invariance covers about 2x), best ``visual_candidates`` by count;
-2. matching: each projected point is compared with the current features within a window
-   (the predicted drift in pixels, at least ``visual_window_px``), same Laplacian sign,
-   best descriptor distance with a ratio test against the window's second best, one-to-one;
-3. robust pose: the rotation is the predicted one (IMU + LiDAR keep rotation drift to a
-   fraction of a degree), so each pair of matches fixes the translation (linear, two rows per
-   match); RANSAC over such pairs, hypotheses kept within the drift window of the prediction,
-   scored by reprojection; then the motion-only Gauss-Newton of the visual odometry (Huber)
-   over all six degrees of freedom on the inliers;
-4. acceptance: enough inliers, a rotation that moved less than ``visual_max_rotation_deg``,
-   and the same chi^2 consistency gate against the estimate as LiDAR loops.
+   distance (``visual_min_depth`` .. ``visual_max_depth``, within 2x of the old one), best
+   ``visual_candidates`` by count;
+2. search along the track: each point's ``visual_patch`` square patch is laid on its LiDAR
+   plane (the plane fit that gave the feature its depth gives the normal), sampled in the old
+   image and compared by NCC with the current one while the current camera slides along its
+   direction of travel (``visual_shift_step`` steps, within three times the drift expected
+   since the old keyframe, clamped to ``visual_min_shift`` .. ``visual_max_shift``); both
+   images are undistorted (OpenCV ``remap``) and blurred by ``visual_blur_px`` so a few
+   centimetres of lateral error do not hide the peak;
+3. hypotheses: up to ``visual_hypotheses`` local peaks of the mean (clipped) NCC over the
+   shifts; each is refined by a direct alignment (Gauss-Newton on the patches' normalised
+   grey values, translation only, blurred then sharp images, rotation held at the
+   prediction); the hypothesis with the most patches above ``visual_min_ncc`` wins;
+4. acceptance: at least ``visual_min_inliers`` such patches, no runner-up hypothesis with more
+   than ``visual_peak_ratio`` of the winner's (a periodic structure: tray rungs, brackets),
+   a move across the track below ``visual_max_cross`` (the LiDAR pins lateral and vertical),
+   an along-track sigma below ``visual_max_sigma``, and the same chi^2 consistency gate
+   against the estimate as LiDAR loops.
 
-The factor's information is the reprojection Hessian (``visual_information_scale``); loop
-factors carry a Cauchy kernel in the graph. Everything here is numpy on the host; it runs in
-the vision worker beside the keyframe's own features.
+The factor measures the translation along the track only (sigma from the aligned patch
+centres' reprojection Hessian times ``visual_information_scale``), with the rotation and the
+other translations loose (``visual_rotation_sigma_deg``, ``visual_loose_sigma``): the rotation
+was held, and a few tenths of a degree of rotation error move the lateral estimate by
+centimetres but not the along-track one. Loop factors carry a Cauchy kernel in the graph.
+Everything here is numpy / OpenCV on the host; it runs in the vision worker beside the
+keyframe's own features.
 """
 
 from __future__ import annotations
