@@ -170,7 +170,8 @@ class VisionConfig:
     the LiDAR is not degenerate (ratio of lengths, after 20 pairs, clipped to +-5 %). Off by
     default since ``scale_variable`` estimates the scale in the graph: with both, the scale is
     corrected twice from the same LiDAR lengths (measured on seeds 0-3 of the 30 m tunnel, loop
-    error 0.038 / 0.049 / 0.023 / 0.030 m with it, 0.010 / 0.019 / 0.018 / 0.020 without)."""
+    error 0.038 / 0.049 / 0.023 / 0.030 m with it, 0.010 / 0.019 / 0.018 / 0.020 without, at
+    ``min_inliers`` 25)."""
     scale_variable: bool = True
     """Estimate the visual odometry's length scale in the graph: each keyframe gets a
     :class:`~jaxslam.core.ScaleVar` (log scale) joined to the previous one by a random walk,
