@@ -53,7 +53,7 @@ from ..solvers import IncrementalConfig, IncrementalSolver
 from ._config import PipelineConfig
 from ._imu import ImuBuffer, NavState, gravity_alignment, preintegrate_interval, propagate
 from ._lidar_frontend import LidarOdometry, ScanResult, axis_weighted, information_for_factor
-from ._loop import LoopCloser
+from ._loop import Loop, LoopCloser
 from ._visual import DirectionMeasurement, KeyframeFeatures, VisualFrontend, VisualMeasurement
 from ._visual_loop import LoopQuery, VisualLoop, VisualLoopCloser
 
@@ -449,10 +449,7 @@ class Estimator:
         tl = time.perf_counter()
         if self.loops is not None and scan is not None and k > 0:
             est = self._poses()
-            for loop in self.loops.detect(k, self.keyframes, est):
-                robust = Cauchy(self.cfg.loop.cauchy_scale)
-                factors.append(self._tag("loop", _between(loop.i, loop.j, loop.T, loop.information, robust=robust)))
-                self.edges.append(("loop closure", loop.i, loop.j, loop.T, loop.information))
+            factors += [self._loop_factor(loop) for loop in self.loops.detect(k, self.keyframes, est)]
         self.timing["loop"] += time.perf_counter() - tl
         ts = time.perf_counter()
         self.solver.update(factors, Values.create(values))
@@ -508,16 +505,20 @@ class Estimator:
         times = np.array([kf.t for kf in self.keyframes[:k]] + [t])
         return LoopQuery(k, t, poses, np.concatenate([[0.0], np.cumsum(steps)]), times)
 
+    def _loop_factor(self, loop: Loop | VisualLoop):
+        """The graph factor of an accepted loop (LiDAR or visual): its relative pose and
+        information under a Cauchy kernel; the edge is recorded for the residual plots."""
+        self.edges.append(("loop closure", loop.i, loop.j, loop.T, loop.information))
+        robust = Cauchy(self.cfg.loop.cauchy_scale)
+        return self._tag("loop", _between(loop.i, loop.j, loop.T, loop.information, robust=robust))
+
     def _collect_vision(self, keep: int = 0) -> list:
         """Factors of all vision jobs but the newest ``keep``, in keyframe order (waiting for
         them to finish)."""
         out: list[Any] = []
         while len(self._vjobs) > keep:
             kf, paired, vms = self._vjobs.popleft().result()
-            for lp in [v for v in vms if isinstance(v, VisualLoop)]:
-                robust = Cauchy(self.cfg.loop.cauchy_scale)
-                out.append(self._tag("loop", _between(lp.i, lp.j, lp.T, lp.information, robust=robust)))
-                self.edges.append(("loop closure", lp.i, lp.j, lp.T, lp.information))
+            out += [self._loop_factor(lp) for lp in vms if isinstance(lp, VisualLoop)]
             for dm in [v for v in vms if isinstance(v, DirectionMeasurement)]:
                 sr, sd = self.cfg.vision.direction_sigmas
                 noise = Gaussian.diagonal(jnp.asarray([sr] * 3 + [sd] * 2))

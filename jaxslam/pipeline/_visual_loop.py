@@ -101,10 +101,11 @@ class VisualLoopCloser:
         self.T_cb = host.inverse(T_bc)
         self.f = f
         w, h = image_size
-        # the image's extent in normalised coordinates (undistorted corners, loosely)
         self.K = K
         self.dist = tuple(dist)
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
+        self._rectified: dict[tuple[int, float], np.ndarray] | None = None  # during detect()
+        # the image's extent in normalised coordinates (undistorted corners, loosely)
         self.bounds = np.array(
             [-K[0, 2] / K[0, 0], (w - K[0, 2]) / K[0, 0], -K[1, 2] / K[1, 1], (h - K[1, 2]) / K[1, 1]]
         )
@@ -124,6 +125,19 @@ class VisualLoopCloser:
     ) -> list[VisualLoop]:
         """Loops from keyframe ``q.k`` (its grey ``image``) to older keyframes (their
         ``features`` and grey ``images``)."""
+        self._rectified = {}
+        try:
+            return self._detect(q, image, features, images)
+        finally:
+            self._rectified = None
+
+    def _detect(
+        self,
+        q: LoopQuery,
+        image: np.ndarray,
+        features: dict[int, KeyframeFeatures],
+        images: dict[int, np.ndarray],
+    ) -> list[VisualLoop]:
         cfg = self.cfg
         old = np.nonzero(q.times < q.t - cfg.min_gap_s)[0]
         d = np.linalg.norm(q.poses[old, :3, 3] - q.poses[q.k, :3, 3], axis=1)
@@ -198,7 +212,11 @@ class VisualLoopCloser:
 
     def rectified(self, image: np.ndarray, blur: float) -> np.ndarray:
         """The grey image resampled to the pinhole camera of the same ``K`` (distortion
-        removed) as float32, Gaussian-blurred by ``blur`` px (0: none)."""
+        removed) as float32, Gaussian-blurred by ``blur`` px (0: none); kept for the rest of
+        the :meth:`detect` call (the search and every alignment reuse the same images)."""
+        key = (id(image), blur)
+        if self._rectified is not None and key in self._rectified:
+            return self._rectified[key]
         img = np.asarray(image, np.float32)
         if img.ndim == 3:
             img = img.max(axis=2)
@@ -212,7 +230,10 @@ class VisualLoopCloser:
                 (self.K[1, 1] * xd[..., 1] + self.K[1, 2]).astype(np.float32),
             )
         out = cv2.remap(img, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        return cv2.GaussianBlur(out, (0, 0), blur) if blur > 0 else out
+        out = cv2.GaussianBlur(out, (0, 0), blur) if blur > 0 else out
+        if self._rectified is not None:
+            self._rectified[key] = out
+        return out
 
     @staticmethod
     def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -258,9 +279,9 @@ class VisualLoopCloser:
         """Photometric search of fi's textured 3-D points along the drift line: for shifts
         ``s`` of the current camera along the body's direction of travel (x), the NCC of each
         point's plane patch in image i with the same patch seen from camera k. The images are
-        blurred and the patch spaced 2 px, so a pixel or two of error across the line (the
-        prediction's other directions) does not hide the peak. Returns the shifts (S,), the
-        NCC (S, P) and the point indices (P,)."""
+        blurred and the patch samples spaced ``visual_search_spacing_px``, so a pixel or two
+        of error across the line (the prediction's other directions) does not hide the peak.
+        Returns the shifts (S,), the NCC (S, P) and the point indices (P,)."""
         cfg = self.cfg
         shifts = np.arange(-max_shift, max_shift + 1e-9, cfg.visual_shift_step)
         pts = np.nonzero(np.isfinite(fi.X[:, 0]))[0]
@@ -320,13 +341,12 @@ class VisualLoopCloser:
         images: tuple[np.ndarray, np.ndarray],
         T_ki: np.ndarray,
         blur: float,
-        rotation: bool = False,
         iterations: int = 6,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Direct alignment of ``T_ki`` (camera k <- camera i) on the plane patches of ``pts``:
         Gauss-Newton on the difference of the per-patch normalised grey values (zero mean,
         unit variance: exposure-free) of image k and image i over a left perturbation of the
-        translation (and the rotation with ``rotation``), Jacobian by central differences,
+        translation (the rotation is held), Jacobian by central differences,
         patches weighted by a Huber kernel on their residual. Returns the refined pose and each
         patch's final NCC."""
         grid, kept = self.patches(fi, pts, 1.5)
@@ -340,8 +360,8 @@ class VisualLoopCloser:
             return vals / (np.sqrt(np.mean(vals * vals, axis=-1, keepdims=True)) + 1e-9)
 
         ref = normalised(self._bilinear(img_i, *self._pixels(grid)))  # (P, G)
-        dims = np.arange(6) if rotation else np.arange(3, 6)
-        h = np.where(dims < 3, 1e-3, 1e-2)  # rad, m
+        dims = np.arange(3, 6)  # the translation's tangent coordinates
+        h = np.full(3, 1e-2)  # m
 
         def residual(T: np.ndarray, d: np.ndarray | None = None) -> np.ndarray:
             if d is not None:
@@ -367,7 +387,7 @@ class VisualLoopCloser:
             if np.linalg.cond(H) > 1e10:
                 break
             step = -np.linalg.solve(H, g)
-            step = step * min(1.0, float(np.min(5 * h / np.maximum(np.abs(step), 1e-12))))  # <= 5 cm, 0.3 deg
+            step = step * min(1.0, float(np.min(5 * h / np.maximum(np.abs(step), 1e-12))))  # <= 5 cm
             d = np.zeros(6)
             d[dims] = step
             T = host.se3_exp(d) @ T

@@ -27,6 +27,8 @@ from jaxslam.core import (
 from jaxslam.factors import BetweenFactor, PriorFactor
 from jaxslam.lie import SE2, SE3, SO3
 
+from ._numeric import manifold_central_difference
+
 N = 5
 VAR_TYPES = [Pose3Var, Pose2Var, Rot3Var, Point3Var]
 GTSAM_NAME = {Pose3Var: "Pose3", Pose2Var: "Pose2", Rot3Var: "Rot3", Point3Var: "Point3"}
@@ -156,22 +158,6 @@ def test_robust_cost_vs_gtsam(gtsam, vtype, problems):
         cost = np.asarray(factor_cost(factor, _params(prob, kind)))
         expected = [gf.error(values) for gf in gfactors]
         np.testing.assert_allclose(cost, expected, rtol=1e-10, atol=1e-20, err_msg=kind)
-
-
-def manifold_central_difference(factor, params: tuple, slot: int, h: float = 1e-6) -> np.ndarray:
-    """``d r / d delta`` for ``x_slot <- retract(x_slot, delta)``, all constraints at once:
-    ``(N, r, t)``."""
-    vtype = type(factor.variables[slot])
-    n = vtype.tangent_dim
-    cols = []
-    for i in range(n):
-        d = np.zeros((N, n))
-        d[:, i] = h
-        plus, minus = list(params), list(params)
-        plus[slot] = vtype.retract(params[slot], jnp.asarray(d))
-        minus[slot] = vtype.retract(params[slot], jnp.asarray(-d))
-        cols.append((np.asarray(factor.evaluate(tuple(plus))) - np.asarray(factor.evaluate(tuple(minus)))) / (2 * h))
-    return np.stack(cols, axis=-1)
 
 
 @pytest.mark.parametrize("kind", ["between", "prior"])
