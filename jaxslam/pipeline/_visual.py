@@ -211,29 +211,41 @@ class VisualFrontend:
         cfg = self.cfg
         if len(a.uv) < 8 or len(b.uv) < 8:
             return None
+        T_cacb = self.T_cb @ T_ab_guess @ self.T_bc  # camera a <- camera b
         signs = (a.sign, b.sign) if cfg.detector == "surf" else (None, None)
         pairs, _ = match_descriptors(a.desc, b.desc, ratio=cfg.ratio, cross_check=True, sign1=signs[0], sign2=signs[1])
-        if len(pairs) < max(8, cfg.min_inliers):
-            return None
-        ia, ib = pairs[:, 0], pairs[:, 1]
-        res = None
-        if cfg.ransac:
-            res = find_essential(a.xn[ia], b.xn[ib], cfg.ransac_threshold_px / self.f)
-            keep = np.asarray(res.inliers)
-            ia, ib = ia[keep], ib[keep]
-        has = np.isfinite(a.X[ia, 0])
-        if has.sum() < cfg.min_inliers:
-            # no metric depth (no LiDAR map there): fall back to the scale-free two-view pose
-            moved = float(np.linalg.norm(T_ab_guess[:3, 3])) > cfg.direction_min_motion
-            if cfg.direction_fallback and res is not None and len(ia) >= cfg.min_inliers and moved:
+        fit = None
+        if len(pairs) >= max(8, cfg.min_inliers):
+            ia, ib = pairs[:, 0], pairs[:, 1]
+            res = None
+            if cfg.ransac:
+                res = find_essential(a.xn[ia], b.xn[ib], cfg.ransac_threshold_px / self.f)
+                keep = np.asarray(res.inliers)
+                ia, ib = ia[keep], ib[keep]
+            has = np.isfinite(a.X[ia, 0])
+            if has.sum() >= cfg.min_inliers:
+                ia, ib = ia[has], ib[has]
+                fit = motion_only(a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers)
+            elif (
+                cfg.direction_fallback
+                and res is not None
+                and len(ia) >= cfg.min_inliers
+                and float(np.linalg.norm(T_ab_guess[:3, 3])) > cfg.direction_min_motion
+            ):
+                # no metric depth (no LiDAR map there): the scale-free two-view pose
                 R, t = np.asarray(res.R), np.asarray(res.t)  # camera b from camera a: X_b = R X_a + t
                 u = -R.T @ t
                 if np.all(np.isfinite(u)) and np.linalg.norm(u) > 1e-9:
                     return DirectionMeasurement(a.kf, b.kf, R.T, u / np.linalg.norm(u), len(ia))
-            return None
-        ia, ib = ia[has], ib[has]
-        T_cacb = self.T_cb @ T_ab_guess @ self.T_bc  # camera a <- camera b
-        fit = motion_only(a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers)
+        n_pairs = len(pairs)
+        if fit is None and cfg.guided_radius_px > 0:
+            # too few global matches (dark, noisy keypoints; a turn on the spot): match again
+            # where the predicted motion puts a's 3-D points, then the same robust fit
+            gp = self.guided_pairs(a, b, host.inverse(T_cacb))
+            if len(gp) >= cfg.min_inliers:
+                ia, ib = gp[:, 0], gp[:, 1]
+                fit = motion_only(a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers)
+                n_pairs = len(gp)
         if fit is None:
             return None
         T_cbca, keep, e = fit
@@ -259,11 +271,50 @@ class VisualFrontend:
             T_ab,
             0.5 * (info_body + info_body.T),
             len(ia),
-            len(pairs),
+            n_pairs,
             X,
             x,
             float(np.sqrt(np.mean((e * self.f) ** 2))),
         )
+
+    def guided_pairs(self, a: KeyframeFeatures, b: KeyframeFeatures, T_cbca: np.ndarray) -> np.ndarray:
+        """Matches ``(M, 2)`` of a's features with depth to b's features near where the
+        motion ``T_cbca`` (camera b <- camera a, a prediction) projects them: within
+        ``guided_radius_px``, same Laplacian sign (SURF), the nearest descriptor passing the
+        ratio test against the other candidates in the window (``guided_ratio``), each of b's
+        features used once (the closest descriptor wins). A window holds a few candidates
+        instead of the whole image, so noisy dark keypoints that fail the global ratio test
+        can still be matched; the motion-only fit then rejects what the prediction let in."""
+        cfg = self.cfg
+        ia = np.nonzero(np.isfinite(a.X[:, 0]))[0]
+        if ia.size == 0 or len(b.xn) == 0:
+            return np.zeros((0, 2), np.int64)
+        Xb = host.transform_points(T_cbca, a.X[ia])
+        front = Xb[:, 2] > 0.1
+        ia, Xb = ia[front], Xb[front]
+        cand = cKDTree(b.xn).query_ball_point(Xb[:, :2] / Xb[:, 2:3], cfg.guided_radius_px / self.f)
+        lens = np.fromiter((len(c) for c in cand), np.int64, len(cand))
+        if lens.sum() == 0:
+            return np.zeros((0, 2), np.int64)
+        pa = np.repeat(ia, lens)
+        pb = np.fromiter((j for c in cand for j in c), np.int64, int(lens.sum()))
+        if cfg.detector == "surf":
+            same = a.sign[pa] == b.sign[pb]
+            pa, pb = pa[same], pb[same]
+        d = np.linalg.norm(a.desc[pa].astype(np.float64) - b.desc[pb].astype(np.float64), axis=1)
+        order = np.lexsort((d, pa))  # by feature of a, nearest descriptor first
+        pa, pb, d = pa[order], pb[order], d[order]
+        first = np.r_[True, pa[1:] != pa[:-1]]
+        start = np.nonzero(first)[0]
+        second = np.full(len(start), np.inf)
+        has2 = np.r_[start[1:], len(pa)] - start > 1
+        second[has2] = d[start[has2] + 1]
+        ok = d[start] < cfg.guided_ratio * second
+        pa, pb, d = pa[start[ok]], pb[start[ok]], d[start[ok]]
+        order = np.lexsort((d, pb))  # one feature of b per match: the closest descriptor
+        pa, pb = pa[order], pb[order]
+        keep = np.r_[True, pb[1:] != pb[:-1]]
+        return np.stack([pa[keep], pb[keep]], axis=1)
 
     @staticmethod
     def _scale_from_depth(T_ba: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray | None:
