@@ -555,6 +555,17 @@ def test_plane_depth_nan_at_a_corner():
     np.testing.assert_allclose(X[2], [1.0, 0.0, 1 / 0.6], atol=1e-9)
 
 
+def _tunnel_wall_points(rng, n):
+    """``n`` points on the walls of a 3 m square tunnel 2-12 m ahead of a camera (camera
+    frame: z forward)."""
+    z = rng.uniform(2.0, 12.0, n)
+    side = rng.integers(0, 4, n)
+    u = rng.uniform(-1.5, 1.5, n)
+    x = np.where(side == 0, -1.5, np.where(side == 1, 1.5, u))
+    y = np.where(side == 2, -1.5, np.where(side == 3, 1.5, np.where(side < 2, u, 0.0)))
+    return np.c_[x, y, z]
+
+
 @pytest.mark.parametrize("scale_depth", ["scan", "map"])
 def test_visual_length_from_each_keyframes_own_scan(scale_depth):
     """Depths from a local map whose scans sit at LiDAR-odometry poses repeat the odometry's
@@ -568,14 +579,8 @@ def test_visual_length_from_each_keyframes_own_scan(scale_depth):
     vis = dataclasses.replace(cfg.vision, scale_depth=scale_depth, ransac=False)
     fe = VisualFrontend(vis, cfg.rig)
     rng = np.random.default_rng(21)
-    # points on the walls of a 3 m tunnel ahead of camera a (camera frame: z forward)
     n = 400
-    z = rng.uniform(2.0, 12.0, n)
-    side = rng.integers(0, 4, n)
-    u = rng.uniform(-1.5, 1.5, n)
-    x = np.where(side == 0, -1.5, np.where(side == 1, 1.5, u))
-    y = np.where(side == 2, -1.5, np.where(side == 3, 1.5, np.where(side < 2, u, 0.0)))
-    Xa = np.c_[x, y, z]
+    Xa = _tunnel_wall_points(rng, n)
     step = np.array([0.02, -0.01, 0.25])  # camera b = camera a moved (no rotation)
     Xb = Xa - step
 
@@ -610,12 +615,7 @@ def _repeated_texture_pair(fe, rng, n=400, kinds=40):
     the image-wide ratio test cannot tell the copies apart."""
     from jaxslam.pipeline._visual import KeyframeFeatures
 
-    z = rng.uniform(2.0, 12.0, n)
-    side = rng.integers(0, 4, n)
-    u = rng.uniform(-1.5, 1.5, n)
-    x = np.where(side == 0, -1.5, np.where(side == 1, 1.5, u))
-    y = np.where(side == 2, -1.5, np.where(side == 3, 1.5, np.where(side < 2, u, 0.0)))
-    Xa = np.c_[x, y, z]
+    Xa = _tunnel_wall_points(rng, n)
     step = np.array([0.02, -0.01, 0.25])
     Xb = Xa - step
     base = rng.standard_normal((kinds, 64)).astype(np.float32)
