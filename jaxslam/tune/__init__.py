@@ -18,9 +18,11 @@ from ._enhance_proxy import (
     tune_enhancement,
 )
 from ._implicit import BackwardStats, DifferentiableSolver, ImplicitConfig
+from ._synthetic import tunnel_capture
 from ._tune import (
     GROUPS,
     Captured,
+    Shards,
     TuneConfig,
     TuneReport,
     aligned_position_loss,
@@ -32,7 +34,7 @@ from ._tune import (
 
 __all__ = ["BackwardStats", "DifferentiableSolver", "ImplicitConfig"]
 __all__ += ["GROUPS", "Captured", "TuneConfig", "TuneReport", "aligned_position_loss", "apply_weights"]
-__all__ += ["tune", "tune_graphs", "weights_summary"]
+__all__ += ["Shards", "tune", "tune_graphs", "tunnel_capture", "weights_summary"]
 __all__ += ["ALPHA_RANGE", "CLIP_RANGE", "EnhancementResult", "FrameSet", "ProxyWeights", "enhancement_objective"]
 __all__ += ["evaluate_registration", "from_params", "simulate_frames", "soft_keypoints", "to_params"]
 __all__ += ["tune_enhancement"]

@@ -47,6 +47,13 @@ def register(subparsers) -> None:
         "(consecutive frames of the training recordings)",
     )
     t.add_argument("--enhance-steps", type=int, default=20, help="Adam steps for --enhance (default 20)")
+    t.add_argument(
+        "--devices",
+        type=int,
+        default=0,
+        help="JAX devices to shard the training recordings' graphs across (default 0: all local devices; "
+        "a CPU-only machine has one unless XLA_FLAGS=--xla_force_host_platform_device_count=N)",
+    )
     t.add_argument("--workdir", help="where the estimator runs go (default: <output stem>_runs/)")
     t.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_tune)
@@ -62,6 +69,10 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
     if args.rounds < 1 or args.steps < 0:
         raise ConfigError("--rounds must be >= 1 and --steps >= 0")
+    import jax
+
+    if not 0 <= args.devices <= len(jax.local_devices()):
+        raise ConfigError(f"--devices must be 0 (all) to {len(jax.local_devices())} (the local JAX devices)")
     out = Path(args.output)
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise ConfigError(f"--output must be a .yaml file, got {out}")
@@ -72,7 +83,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
     rig = args.rig or (find_rig(args.recordings[0]) if not args.config else None)
     if rig:
         cfg = dataclasses.replace(cfg, rig=load_rig(rig))
-    tcfg = TuneConfig(steps=args.steps, rounds=args.rounds, truth=args.truth, lever_arm=tuple(args.lever_arm))
+    tcfg = TuneConfig(
+        steps=args.steps, rounds=args.rounds, truth=args.truth, lever_arm=tuple(args.lever_arm), devices=args.devices
+    )
     work = Path(args.workdir) if args.workdir else out.with_name(out.stem + "_runs")
     bar = None if args.quiet else (lambda **kw: tqdm(**kw))
     enhancement = None

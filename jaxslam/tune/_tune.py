@@ -11,7 +11,9 @@ weights)::
         ──DifferentiableSolver (optimum + adjoint gradient)──▶ loss: mean squared error of
           the SE(3)-aligned prism/body positions (APE², the alignment held fixed: by the
           envelope theorem that is the exact gradient of the aligned loss)
-        ──bounded L-BFGS on theta (all sequences: a loop that reuses the compiled kernels)──▶ theta
+        ──bounded L-BFGS on theta (all sequences: a loop that reuses the compiled kernels;
+          with several JAX devices the sequences are sharded across them, one host thread
+          per device, each sequence's arrays committed to its device)──▶ theta
     theta ──apply_weights──▶ a new PipelineConfig (``imu.noise_scale``, the rig's bias random
         walks, ``{lidar,vision,loop}.axis_weights``) ──▶ next round / weights.yaml
 
@@ -26,9 +28,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +92,10 @@ class TuneConfig:
     solves and estimator runs, the best by training loss kept)."""
     random_range: float = float(np.log(30.0))
     seed: int = 0
+    devices: int = 0
+    """JAX devices to shard the training sequences across (round-robin, one host thread per
+    device): 0 = every local device, 1 = the default device only. On a CPU-only machine
+    there is one device unless ``XLA_FLAGS=--xla_force_host_platform_device_count=N``."""
 
 
 @dataclasses.dataclass
@@ -202,6 +210,66 @@ class GraphTuneResult:
     backward_s: float
 
 
+class Shards:
+    """Sequences spread round-robin over JAX devices: sequence ``i`` lives on
+    ``devices[i % len(devices)]``. :meth:`map` runs ``fn(i)`` for every sequence with its
+    device as the default and ``theta`` committed to it, so each sequence's kernels (its
+    linearisations, Hessian-vector products and VJPs: computation follows data) run there;
+    one host thread per device, results in sequence order (so the sums over sequences, and
+    every result, are the same however many devices share the work). The host parts of a
+    solve (the sparse Cholesky) run in the device's thread."""
+
+    def __init__(self, n: int, devices: int = 0):
+        local = jax.local_devices()
+        if devices < 0:
+            raise ConfigError(f"devices must be >= 0 (0 = all local devices), got {devices}")
+        if devices > len(local):
+            raise ConfigError(f"devices={devices} but JAX sees {len(local)} local device(s): {local}")
+        self.devices = local[: devices or len(local)][: max(n, 1)]
+        self.n = n
+        self._pool = ThreadPoolExecutor(len(self.devices), "jaxslam-shard") if len(self.devices) > 1 else None
+
+    def device_of(self, i: int) -> Any:
+        return self.devices[i % len(self.devices)]
+
+    def map(self, fn: Callable[[int], Any]) -> list[Any]:
+        """``[fn(0), ..., fn(n-1)]``, each run on its sequence's device; an exception is
+        returned in its sequence's place, not raised (the caller decides)."""
+        k = len(self.devices)
+
+        def shard(d: int) -> dict[int, Any]:
+            out: dict[int, Any] = {}
+            with jax.default_device(self.devices[d]):
+                for i in range(d, self.n, k):
+                    try:
+                        out[i] = fn(i)
+                    except Exception as e:  # handed back to the caller
+                        out[i] = e
+            return out
+
+        if self._pool is None:
+            parts = [shard(0)]
+        else:
+            parts = list(self._pool.map(shard, range(k)))
+        merged = {i: v for part in parts for i, v in part.items()}
+        return [merged[i] for i in range(self.n)]
+
+    def put(self, i: int, x: Any) -> Any:
+        """``x`` committed to sequence ``i``'s device."""
+        return jax.device_put(x, self.device_of(i))
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+
+
+def _raise_unexpected(results: list[Any], expected: tuple[type[BaseException], ...] = (SolverError,)) -> None:
+    """Re-raise the first exception in ``results`` that is not ``expected``."""
+    for r in results:
+        if isinstance(r, BaseException) and not isinstance(r, expected):
+            raise r
+
+
 def tune_graphs(
     runs: Sequence[Captured],
     cfg: TuneConfig,
@@ -209,21 +277,38 @@ def tune_graphs(
 ) -> GraphTuneResult:
     """Bounded L-BFGS (L-BFGS-B, SciPy) on the log-sigma multipliers against the captured
     graphs (``theta = 0``: the weights they were captured with), every evaluation a forward
-    solve and an adjoint gradient per graph. L-BFGS scales its steps by the curvature it
-    has seen; Adam (tried first) moves every weight at its full step whatever the size of
-    its gradient, and drove weights the position loss hardly sees 100x away, which the
-    front end then suffered from."""
-    theta = jnp.zeros(len(GROUPS))
+    solve and an adjoint gradient per graph, the graphs sharded across ``cfg.devices``
+    (:class:`Shards`). L-BFGS scales its steps by the curvature it has seen; Adam (tried
+    first) moves every weight at its full step whatever the size of its gradient, and drove
+    weights the position loss hardly sees 100x away, which the front end then suffered from."""
     present = np.zeros(len(GROUPS), bool)
     for r in runs:
         for k in r.kinds:
             for g in _KIND_GROUPS[k]:
                 present[GROUPS.index(g)] = True
-    solvers = [DifferentiableSolver(factor_fn_for(r), r.values, theta) for r in runs]
-    if cfg.search == "random":
-        return _random_search(runs, solvers, present, cfg, progress)
-    if cfg.search != "gradient":
-        raise ConfigError(f"search must be gradient or random, got {cfg.search!r}")
+    shards = Shards(len(runs), cfg.devices)
+    try:
+        th0 = jnp.zeros(len(GROUPS))
+        built = shards.map(lambda i: DifferentiableSolver(factor_fn_for(runs[i]), runs[i].values, shards.put(i, th0)))
+        _raise_unexpected(built, expected=())
+        solvers: list[DifferentiableSolver] = built
+        if cfg.search == "random":
+            return _random_search(runs, solvers, shards, present, cfg, progress)
+        if cfg.search != "gradient":
+            raise ConfigError(f"search must be gradient or random, got {cfg.search!r}")
+        return _lbfgs(runs, solvers, shards, present, cfg, progress)
+    finally:
+        shards.close()
+
+
+def _lbfgs(
+    runs: Sequence[Captured],
+    solvers: list[DifferentiableSolver],
+    shards: Shards,
+    present: np.ndarray,
+    cfg: TuneConfig,
+    progress: Callable[[int, float], None] | None,
+) -> GraphTuneResult:
     from scipy.optimize import minimize
 
     history: list[float] = []
@@ -232,28 +317,35 @@ def tune_graphs(
     times = [0.0, 0.0]
     scale: list[float] = []
 
+    def one(i: int, th: np.ndarray) -> tuple[float, np.ndarray, float, float]:
+        r, ds = runs[i], solvers[i]
+        lv, g = jax.value_and_grad(lambda t: aligned_position_loss(ds(t), r))(shards.put(i, th))
+        return float(lv), np.asarray(g), ds.forward_time_s, ds.backward.time_s
+
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
         if len(history) > cfg.steps:  # the evaluation budget is spent (L-BFGS-B may overrun maxfun)
             raise _BudgetSpent
-        th = jnp.asarray(np.where(present, x, 0.0))
+        th = np.where(present, x, 0.0)
+        results = shards.map(lambda i: one(i, th))
+        _raise_unexpected(results)
+        failed = [i for i, res in enumerate(results) if isinstance(res, SolverError)]
+        if failed:  # a step into weights where a graph does not converge
+            for i in failed:
+                solvers[i].reset()
+            return 1e3 * (scale[0] if scale else 1.0), np.zeros(len(GROUPS))
         total = 0.0
-        grad = jnp.zeros(len(GROUPS))
-        for r, ds in zip(runs, solvers):
-            try:
-                lv, g = jax.value_and_grad(lambda t, r=r, ds=ds: aligned_position_loss(ds(t), r))(th)
-            except SolverError:  # a step into weights where the graph does not converge
-                ds.reset()
-                return 1e3 * (scale[0] if scale else 1.0), np.zeros(len(GROUPS))
-            total += float(lv) / len(runs)
+        grad = np.zeros(len(GROUPS))
+        for lv, g, t_fwd, t_bwd in results:  # in sequence order: the same sums on any sharding
+            total += lv / len(runs)
             grad = grad + g / len(runs)
-            times[0] += ds.forward_time_s
-            times[1] += ds.backward.time_s
+            times[0] += t_fwd
+            times[1] += t_bwd
         if not scale:
             scale.append(total)
         # Tikhonov term: a weight the loss cannot see stays where it was
         reg = cfg.regularization * scale[0]
         value = total + reg * float(np.sum(x * x))
-        g_all = np.where(present, np.asarray(grad) + 2 * reg * x, 0.0)
+        g_all = np.where(present, grad + 2 * reg * x, 0.0)
         history.append(total)
         gnorms.append(float(np.linalg.norm(g_all)))
         if total < best[0]:
@@ -283,6 +375,7 @@ class _BudgetSpent(Exception):
 def _random_search(
     runs: Sequence[Captured],
     solvers: list[DifferentiableSolver],
+    shards: Shards,
     present: np.ndarray,
     cfg: TuneConfig,
     progress: Callable[[int, float], None] | None,
@@ -291,18 +384,24 @@ def _random_search(
     best, best_loss = np.zeros(len(GROUPS)), np.inf
     history: list[float] = []
     fwd = 0.0
+
+    def one(i: int, cand: np.ndarray) -> tuple[float, float]:
+        loss = float(aligned_position_loss(solvers[i].solve(shards.put(i, cand)), runs[i]))
+        return loss, solvers[i].forward_time_s
+
     for step in range(cfg.steps + 1):
         cand = np.zeros(len(GROUPS)) if step == 0 else rng.uniform(-cfg.random_range, cfg.random_range, len(GROUPS))
         cand = np.where(present, cand - cand[present].mean(), 0.0)
+        results = shards.map(functools.partial(one, cand=cand))
+        _raise_unexpected(results)
         total = 0.0
-        for r, ds in zip(runs, solvers):
-            try:
-                total += float(aligned_position_loss(ds.solve(jnp.asarray(cand)), r)) / len(runs)
-            except SolverError:  # weights so wrong that the graph does not converge
+        for i, res in enumerate(results):
+            if isinstance(res, SolverError):  # weights so wrong that the graph does not converge
                 total = np.inf
-                ds.reset()
-                break
-            fwd += ds.forward_time_s
+                solvers[i].reset()
+                continue
+            total += res[0] / len(runs)
+            fwd += res[1]
         if total < best_loss:
             best, best_loss = cand, total
         history.append(best_loss)

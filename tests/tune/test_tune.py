@@ -14,48 +14,14 @@ import numpy as np
 import pytest
 
 from jaxslam.cli import main as cli
-from jaxslam.core import Cauchy, Gaussian, Pose3Var, Values
-from jaxslam.factors import BetweenFactor, PriorFactor
-from jaxslam.lie import SE3
 from jaxslam.pipeline import PipelineConfig, load_config
-from jaxslam.sim import tunnel_pose_graph
 from jaxslam.tune import GROUPS, Captured, TuneConfig, aligned_position_loss, apply_weights, tune_graphs
+from jaxslam.tune._synthetic import tunnel_capture
 from jaxslam.tune._tune import _interp_truth, factor_fn_for
 
 
 def _captured(seed: int, odo_overtrust: float, lever=(0.0, 0.0, 0.0)) -> Captured:
-    """A tunnel pose graph whose odometry ('lidar') is trusted ``odo_overtrust`` x too much
-    in translation, its loops ('loop') at their true sigmas; truth = prism positions."""
-    g = tunnel_pose_graph(length=30.0, step=0.5, seed=seed, odom_sigma=(0.002, 0.02), loop_sigma=(0.005, 0.01))
-    n = len(g.ground_truth)
-    odo = ~g.is_loop
-    sig_odo = np.array([0.002] * 3 + [0.02 / odo_overtrust] * 3)
-    sig_loop = np.array([0.005] * 3 + [0.01] * 3)
-    lidar = BetweenFactor.create(
-        Pose3Var(g.edges_i[odo]),
-        Pose3Var(g.edges_j[odo]),
-        SE3(jnp.asarray(g.measured[odo])),
-        Gaussian.diagonal(jnp.asarray(sig_odo), n=int(odo.sum())),
-    )
-    loop = BetweenFactor.create(
-        Pose3Var(g.edges_i[g.is_loop]),
-        Pose3Var(g.edges_j[g.is_loop]),
-        SE3(jnp.asarray(g.measured[g.is_loop])),
-        Gaussian.diagonal(jnp.asarray(sig_loop), n=int(g.is_loop.sum())),
-        robust=Cauchy(1.0),
-    )
-    prior = PriorFactor.create(
-        Pose3Var(np.array([0])), SE3(jnp.asarray(g.ground_truth[:1])), Gaussian.diagonal(jnp.full(6, 1e-3))
-    )
-    gt = SE3(jnp.asarray(g.ground_truth))
-    truth = np.asarray(gt.act(jnp.broadcast_to(jnp.asarray(lever, dtype=jnp.float64), (n, 3))))
-    # the survey lives in its own frame: a rigid motion away from the estimate's
-    T = SE3.exp(jnp.array([0.1, -0.2, 0.3, 5.0, -3.0, 1.0]))
-    truth = np.asarray(T.act(jnp.asarray(truth)))
-    values = Values.create({Pose3Var(np.arange(n)): gt})
-    return Captured(
-        f"seed{seed}", {"lidar": lidar, "loop": loop}, [prior], values, np.arange(n), truth, np.asarray(lever), "x"
-    )
+    return tunnel_capture(seed, odo_overtrust, lever)
 
 
 def test_interpolated_truth_skips_gaps() -> None:
@@ -153,6 +119,8 @@ def test_cli_refuses_bad_input(tmp_path, capsys) -> None:
     (tmp_path / "r.bag").write_bytes(b"not a bag")
     assert cli(["tune", str(tmp_path / "r.bag"), "-o", str(tmp_path / "w.txt")]) != 0
     assert ".yaml" in capsys.readouterr().err
+    assert cli(["tune", str(tmp_path / "r.bag"), "-o", str(tmp_path / "w.yaml"), "--devices", "99"]) != 0
+    assert "--devices must be 0 (all) to" in capsys.readouterr().err
 
 
 @pytest.mark.slow
