@@ -17,9 +17,15 @@ the discrete pipeline on held-out simulated frames (SPEC §3.1, §6).
    error (px) and median relative-rotation error (deg), plus the proxy's value on the
    held-out frames.
 
+4. With ``--estimator SEED:LIGHTING ...``: the whole estimator (``jaxslam run``, vision
+   inline so runs are deterministic) on held-out simulated recordings (``--length`` m, out
+   and back; simulated into ``--workdir`` if missing) with each setting as
+   ``vision.alpha/beta/clip``: registered frames, reprojection RMSE and APE, the figures the
+   issue's goal names.
+
 JSON (``--json``): ``{"train_seeds", "heldout", "start", "tuned", "defaults", "tuning"}``,
 each setting with alpha, beta, clip, the proxy value and per held-out sequence and in total
-the discrete metrics.
+the discrete metrics (and ``estimator``: per recording and setting, with ``--estimator``).
 """
 
 from __future__ import annotations
@@ -81,6 +87,46 @@ def evaluate(setting: tuple[float, float, float], sets: dict[str, list[FrameSet]
     return {"per_sequence": per, "total": total}
 
 
+def estimator_eval(args: argparse.Namespace, settings: dict[str, dict]) -> list[dict]:
+    """The estimator on each ``--estimator`` recording with each setting's enhancement."""
+    import dataclasses
+
+    from jaxslam.cli import main as cli
+    from jaxslam.pipeline import PipelineConfig, run_recording
+    from jaxslam.pipeline._config import find_rig, load_rig
+
+    rows = []
+    for spec in args.estimator:
+        seed, _, light = spec.partition(":")
+        bag = args.workdir / (f"seed{seed}.bag" if light == "uneven" else f"seed{seed}_{light}.bag")
+        if not bag.exists():
+            args.workdir.mkdir(parents=True, exist_ok=True)
+            cmd = ["simulate", "-o", str(bag), "--seed", seed, "--length", str(args.length), "--lighting", light, "-q"]
+            if cli(cmd) != 0:
+                raise SystemExit(f"simulation of {bag} failed")
+        base = PipelineConfig().replace(vision={"threaded": False})
+        rig = find_rig(bag)
+        if rig is not None:
+            base = dataclasses.replace(base, rig=load_rig(rig))
+        row: dict = {"recording": bag.name}
+        for name, st in settings.items():
+            cfg = base.replace(vision={"alpha": st["alpha"], "beta": st["beta"], "clip": st["clip"]})
+            m = run_recording(bag, args.workdir / "enhance_eval" / name / bag.stem, cfg, plots=False)
+            row[name] = {
+                "registered": m["registered_frames"],
+                "frames": m["total_frames"],
+                "reproj_rmse_px": m["reproj_rmse_px"],
+                "ape_m": m.get("ape_rmse_m"),
+            }
+            print(
+                f"estimator {bag.name:<20} {name:<9} registered {m['registered_frames']}/{m['total_frames']}, "
+                f"reprojection {m['reproj_rmse_px']:.3f} px, APE {m.get('ape_rmse_m', float('nan')):.4f} m",
+                flush=True,
+            )
+        rows.append(row)
+    return rows
+
+
 def proxy_batch(sets: dict[str, list[FrameSet]], every: int) -> tuple[np.ndarray, np.ndarray]:
     fs = [f for stretches in sets.values() for f in stretches]
     return np.concatenate([f.frames[::every] for f in fs]), np.concatenate([f.twins[::every] for f in fs])  # type: ignore[index]
@@ -93,7 +139,20 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=0.2)
     ap.add_argument("--frames", type=int, default=8, help="frames per stretch (3 stretches per sequence)")
     ap.add_argument("--tune-every", type=int, default=8, help="tune on every n-th training frame (and its twin)")
+    ap.add_argument(
+        "--estimator",
+        nargs="*",
+        default=[],
+        metavar="SEED:LIGHTING",
+        help="also run the estimator on these held-out simulated recordings with each setting",
+    )
+    ap.add_argument("--length", type=float, default=25.0, help="tunnel length of --estimator recordings (m)")
+    ap.add_argument("--workdir", type=Path, default=Path("runs/bench_tune"))
     args = ap.parse_args()
+    for spec in args.estimator:
+        seed, _, light = spec.partition(":")
+        if not seed.isdigit() or light not in ("uneven", "dark", "normal"):
+            ap.error(f"--estimator wants SEED:LIGHTING (lighting uneven, dark or normal), got {spec!r}")
 
     t0 = time.perf_counter()
     train = render(TRAIN, args.frames)
@@ -165,6 +224,8 @@ def main() -> None:
         tot = r["heldout"]["total"]
         line += f" | {tot['registered']:>4d}/{tot['pairs']:<4d} {tot['mean_inliers']:6.1f}"
         print(line)
+    if args.estimator:
+        report["estimator"] = estimator_eval(args, {n: report[n] for n in ("start", "tuned", "defaults")})
     print(f"total {time.perf_counter() - t0:.0f} s (render {t_render:.0f} s)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
