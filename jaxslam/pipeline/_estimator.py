@@ -129,7 +129,9 @@ class Estimator:
             if self.visual is not None and self.lidar is not None and config.loop.enabled and config.loop.visual
             else None
         )
-        self.solver = IncrementalSolver(IncrementalConfig(mode=config.solver.mode))  # type: ignore[arg-type]
+        self.solver = IncrementalSolver(
+            IncrementalConfig(mode=config.solver.mode, chunk_sizes=tuple(config.solver.chunk_sizes))  # type: ignore[arg-type]
+        )
         self.keyframes: list[Keyframe] = []
         self.state: NavState | None = None  # estimate at the last keyframe
         self.warnings: Counter[str] = Counter()

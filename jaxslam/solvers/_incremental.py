@@ -57,7 +57,7 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from ..core import Factor, MarginalFactor, Values, Variable, linearize
-from ..errors import GraphError
+from ..errors import ConfigError, GraphError
 from ..lie import mm, mT
 from ._blocks import BlockInformation, NotPositiveDefinite, pairs
 from ._blocks import one_blas_thread as _one_blas_thread
@@ -114,6 +114,10 @@ class IncrementalConfig:
     """:meth:`IncrementalSolver.optimize`: Levenberg-Marquardt iterations at most."""
     relative_tol: float = 1e-12
     """:meth:`IncrementalSolver.optimize`: stop when the cost decreases by less than this fraction."""
+    chunk_sizes: tuple[int, ...] = (8, 64, 512)
+    """Row counts the compiled kernels are padded to (ascending): each kernel compiles once
+    per size and factor class, and a batch runs in chunks of the largest. Fewer sizes
+    compile less (a cold start) and pad more (small updates do more work)."""
 
 
 @dataclasses.dataclass
@@ -361,17 +365,17 @@ def _pad_rows(a: np.ndarray, cap: int) -> np.ndarray:
     return out
 
 
-_CHUNK_SIZES = (8, 64, 512)
 _DENSE_MAX = 240  # systems up to this many dofs are solved densely
 
 
-def _chunks(m: int):
-    """``(lo, hi, cap)`` pieces covering ``range(m)``, each padded to one of three compiled
-    sizes, so an ever-growing graph compiles each kernel at most three times per factor class."""
+def _chunks(m: int, sizes: tuple[int, ...]):
+    """``(lo, hi, cap)`` pieces covering ``range(m)``, each padded to one of the compiled
+    ``sizes``, so an ever-growing graph compiles each kernel at most ``len(sizes)`` times per
+    factor class."""
     lo = 0
     while lo < m:
         rest = m - lo
-        cap = next((c for c in _CHUNK_SIZES if rest <= c), _CHUNK_SIZES[-1])
+        cap = next((c for c in sizes if rest <= c), sizes[-1])
         hi = min(m, lo + cap)
         yield lo, hi, cap
         lo = hi
@@ -395,6 +399,9 @@ class IncrementalSolver:
         if self.config.linear_solver == "cholmod" and not _HAVE_CHOLMOD:
             raise ValueError("linear solver 'cholmod' needs scikit-sparse (pip install 'jaxslam[cholmod]')")
         self._method = "cholmod" if self.config.linear_solver in ("auto", "cholmod") and _HAVE_CHOLMOD else "splu"
+        cs = tuple(self.config.chunk_sizes)
+        if not cs or any(c < 1 for c in cs) or list(cs) != sorted(set(cs)):
+            raise ConfigError(f"chunk_sizes must be distinct positive row counts in ascending order, got {cs}")
         self.stores: dict[type[Variable], _Store] = {}
         self.groups: dict[Any, _Group] = {}
         self._group_list: list[_Group] = []
@@ -484,7 +491,7 @@ class IncrementalSolver:
         J = np.empty((len(idx), g.rdim, g.T))
         r = np.empty((len(idx), g.rdim))
         cost = 0.0
-        for lo, hi, cap in _chunks(len(idx)):
+        for lo, hi, cap in _chunks(len(idx), self.config.chunk_sizes):
             pidx = _pad_rows(idx[lo:hi], cap)
             params = tuple(
                 getattr(self._store_list[s], "x_lin" if at == "lin" else "x")[g.rows[pidx, k]]
@@ -521,7 +528,7 @@ class IncrementalSolver:
         if fast is not None:
             s.x[rows] = fast
             return
-        for lo, hi, cap in _chunks(len(rows)):
+        for lo, hi, cap in _chunks(len(rows), self.config.chunk_sizes):
             pr = _pad_rows(rows[lo:hi], cap)
             s.x[rows[lo:hi]] = np.asarray(_retract(s.t, s.x_lin[pr], s.delta[pr]))[: hi - lo]
 
@@ -894,14 +901,13 @@ class IncrementalSolver:
                     B.add(g.bslots[new], var, g.G[new])
         self._blocks = B
 
-    @staticmethod
-    def _gram(J: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _gram(self, J: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         m = len(J)
         if m <= 64:
             return np.einsum("mra,mrb->mab", J, J), np.einsum("mra,mr->ma", J, e)
         G = np.empty((m, J.shape[2], J.shape[2]))
         gv = np.empty((m, J.shape[2]))
-        for lo, hi, cap in _chunks(m):
+        for lo, hi, cap in _chunks(m, self.config.chunk_sizes):
             Gc, gc = _gram(_pad_rows(J[lo:hi], cap), _pad_rows(e[lo:hi], cap))
             G[lo:hi] = np.asarray(Gc)[: hi - lo]
             gv[lo:hi] = np.asarray(gc)[: hi - lo]

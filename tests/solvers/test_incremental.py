@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxslam.core import Gaussian, MarginalFactor, Point3Var, Pose3Var, Values
-from jaxslam.errors import GraphError
+from jaxslam.errors import ConfigError, GraphError
 from jaxslam.factors import BetweenFactor, PriorFactor
 from jaxslam.io import read_g2o
 from jaxslam.lie import SE3
@@ -511,3 +511,24 @@ def test_excess_bound_holds_on_a_linear_problem() -> None:
         assert gain <= solver._excess_bound * (1 + 1e-9) + 1e-12 * max(model, 1.0), (gain, solver._excess_bound)
         checked += np.isfinite(solver._excess_bound) and solver._excess_bound > 0
     assert checked > 10
+
+
+def test_chunk_sizes_change_padding_not_results() -> None:
+    """Kernels padded to other row counts (one size: several chunks per batch) give the same
+    estimates; a bad list of sizes is refused."""
+    n = 30
+    P, odo = _chain_problem(n, seed=5)
+    z = np.asarray(SE3(P[-1]).inverse().compose(SE3(P[0])).params)
+    loop = BetweenFactor.create(
+        Pose3Var(np.array([n - 1])), Pose3Var(np.array([0])), z[None], Gaussian.isotropic(6, 1e-3)
+    )
+    out = []
+    for sizes in ((8, 64, 512), (4,)):
+        solver = _chain_solver(P, odo, n, IncrementalConfig(chunk_sizes=sizes))
+        solver.update([loop])
+        solver.optimize()
+        out.append(np.asarray(solver.estimate().params(Pose3Var)))
+    np.testing.assert_allclose(out[1], out[0], rtol=0, atol=1e-10)
+    for bad in ((), (64, 8), (0, 8), (8, 8)):
+        with pytest.raises(ConfigError, match="chunk_sizes"):
+            IncrementalSolver(IncrementalConfig(chunk_sizes=bad))
