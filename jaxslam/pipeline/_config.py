@@ -302,10 +302,13 @@ class SolverOptions:
     """After the last keyframe, relinearise everything and solve to the batch optimum
     (``IncrementalSolver.refine``: Gauss-Newton with the incremental solver's compiled
     kernels, no batch-solver compilation)."""
-    chunk_sizes: tuple[int, ...] = (8, 64, 512)
-    """The incremental solver's compiled row counts (``IncrementalConfig.chunk_sizes``): each
-    factor class's linearisation compiles once per size, which is most of the solver's share
-    of a cold start."""
+    chunk_sizes: tuple[int, ...] = (64,)
+    """The incremental solver's compiled row counts (``IncrementalConfig.chunk_sizes``; the
+    solver's own default is (8, 64, 512)): each factor class's linearisation compiles once
+    per size, most of the solver's share of a cold start. One size: on a 50 s recording
+    with an empty compilation cache, linearisation compiles took 13.0 s instead of 23.1 s
+    and the run 69 s instead of 80 s; warm runs 35.3 vs 34.1 s (solver 1.15 vs 1.11 s);
+    estimates equal to 1e-10."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -351,7 +354,7 @@ _CHOICES = {
 }
 
 
-_ANY_LENGTH = ("camera_distortion", "pairs")
+_ANY_LENGTH = ("camera_distortion", "pairs", "chunk_sizes")
 """Tuple fields of any length (the others must keep their default's)."""
 
 
@@ -371,6 +374,10 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
             v = tuple(v)
             if k == "pairs" and not (v and all(isinstance(x, int) and x >= 1 for x in v)):
                 raise ConfigError(f"{where}.{k}: expected keyframe offsets >= 1 (integers), got {v!r}")
+            if k == "chunk_sizes" and not (
+                v and all(isinstance(x, int) and x >= 1 for x in v) and list(v) == sorted(set(v))
+            ):
+                raise ConfigError(f"{where}.{k}: expected distinct row counts >= 1 in ascending order, got {v!r}")
             if k == "axis_weights" and not all(x > 0 for x in v):
                 raise ConfigError(f"{where}.{k}: weights must be positive, got {v!r}")
         elif isinstance(default, bool):

@@ -252,6 +252,13 @@ def test_pair_lists_take_any_length():
             config_from_dict({"vision": {"pairs": bad}})
 
 
+def test_solver_chunk_sizes_any_length_ascending():
+    assert config_from_dict({"solver": {"chunk_sizes": [8, 64, 512]}}).solver.chunk_sizes == (8, 64, 512)
+    for bad in ([], [64, 8], [0], [16, 16], [8.5]):
+        with pytest.raises(ConfigError, match="chunk_sizes"):
+            config_from_dict({"solver": {"chunk_sizes": bad}})
+
+
 def test_replace_unknown_section_raises_config_error():
     with pytest.raises(ConfigError, match="visoin"):
         PipelineConfig().replace(visoin={"enhance": False})
