@@ -281,6 +281,8 @@ def tune_graphs(
     (:class:`Shards`). L-BFGS scales its steps by the curvature it has seen; Adam (tried
     first) moves every weight at its full step whatever the size of its gradient, and drove
     weights the position loss hardly sees 100x away, which the front end then suffered from."""
+    if cfg.search not in ("gradient", "random"):
+        raise ConfigError(f"search must be gradient or random, got {cfg.search!r}")
     present = np.zeros(len(GROUPS), bool)
     for r in runs:
         for k in r.kinds:
@@ -294,8 +296,6 @@ def tune_graphs(
         solvers: list[DifferentiableSolver] = built
         if cfg.search == "random":
             return _random_search(runs, solvers, shards, present, cfg, progress)
-        if cfg.search != "gradient":
-            raise ConfigError(f"search must be gradient or random, got {cfg.search!r}")
         return _lbfgs(runs, solvers, shards, present, cfg, progress)
     finally:
         shards.close()
