@@ -294,21 +294,25 @@ def tune_graphs(
         built = shards.map(lambda i: DifferentiableSolver(factor_fn_for(runs[i]), runs[i].values, shards.put(i, th0)))
         _raise_unexpected(built, expected=())
         solvers: list[DifferentiableSolver] = built
-        if cfg.search == "random":
-            return _random_search(runs, solvers, shards, present, cfg, progress)
-        return _lbfgs(runs, solvers, shards, present, cfg, progress)
+        t = _Tuning(runs, solvers, shards, present)
+        return (_random_search if cfg.search == "random" else _lbfgs)(t, cfg, progress)
     finally:
         shards.close()
 
 
-def _lbfgs(
-    runs: Sequence[Captured],
-    solvers: list[DifferentiableSolver],
-    shards: Shards,
-    present: np.ndarray,
-    cfg: TuneConfig,
-    progress: Callable[[int, float], None] | None,
-) -> GraphTuneResult:
+@dataclasses.dataclass(frozen=True)
+class _Tuning:
+    """What both searches work on: the captured graphs, their solvers and shards, and which
+    weight groups the graphs have."""
+
+    runs: Sequence[Captured]
+    solvers: list[DifferentiableSolver]
+    shards: Shards
+    present: np.ndarray
+
+
+def _lbfgs(t: _Tuning, cfg: TuneConfig, progress: Callable[[int, float], None] | None) -> GraphTuneResult:
+    runs, solvers, shards, present = t.runs, t.solvers, t.shards, t.present
     from scipy.optimize import minimize
 
     history: list[float] = []
@@ -372,14 +376,8 @@ class _BudgetSpent(Exception):
     pass
 
 
-def _random_search(
-    runs: Sequence[Captured],
-    solvers: list[DifferentiableSolver],
-    shards: Shards,
-    present: np.ndarray,
-    cfg: TuneConfig,
-    progress: Callable[[int, float], None] | None,
-) -> GraphTuneResult:
+def _random_search(t: _Tuning, cfg: TuneConfig, progress: Callable[[int, float], None] | None) -> GraphTuneResult:
+    runs, solvers, shards, present = t.runs, t.solvers, t.shards, t.present
     rng = np.random.default_rng(cfg.seed)
     best, best_loss = np.zeros(len(GROUPS)), np.inf
     history: list[float] = []
