@@ -234,7 +234,8 @@ class LoopConfig:
     simulated tunnel: submaps from two passes are less consistent than one scan-to-map)."""
     axis_weights: tuple[float, float] = (1.0, 1.0)
     """Information multipliers of the factor's (rotation, translation) blocks, after
-    ``information_scale`` (sigmas divided by their square roots); learned by ``jaxslam tune``."""
+    ``information_scale`` (sigmas divided by their square roots), on LiDAR and visual loops
+    alike; learned by ``jaxslam tune``."""
     visual: bool = True
     """Visual loops by projection (:mod:`jaxslam.pipeline._visual_loop`): an old keyframe's
     features with LiDAR depth found again in the current image, from any heading (an

@@ -51,6 +51,7 @@ import numpy as np
 
 from ..lie import host
 from ._config import LoopConfig
+from ._lidar_frontend import axis_weighted
 from ._loop import drift_gate
 from ._visual import KeyframeFeatures, distort_normalized
 
@@ -470,6 +471,9 @@ class VisualLoopCloser:
             [1.0 / np.radians(cfg.visual_rotation_sigma_deg) ** 2] * 3 + [1.0 / cfg.visual_loose_sigma**2] * 3
         )
         info[3, 3] += 1.0 / var  # body x of keyframe k: the between factor's tangent frame
+        # the learned loop weights (jaxslam tune), as for LiDAR loops: the tuner re-weights every
+        # factor tagged "loop" in its graph, visual loops included
+        info = axis_weighted(info, cfg.axis_weights)
         T_ik = self.T_bc @ host.inverse(T) @ self.T_cb  # body i <- body k
         T_est = host.inverse(poses[i]) @ poses[k]
         ok, m2 = drift_gate(T_ik, info, T_est, travelled, dataclasses.replace(cfg, drift_per_m=cfg.visual_drift_per_m))

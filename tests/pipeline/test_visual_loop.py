@@ -85,6 +85,20 @@ def test_measures_the_axis_from_the_mirrored_view(scene, error):
     assert lp.information[3, 3] > 1.0 / 0.05**2
 
 
+def test_learned_loop_weights_scale_the_information(scene):
+    """``loop.axis_weights`` (learned by ``jaxslam tune``, which re-weights every factor tagged
+    "loop", visual ones included) multiply the visual loop's information as they do a LiDAR
+    loop's: the same measurement, its (rotation, translation) blocks scaled."""
+    rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
+    wrong = T_cur @ host.make_pose(np.eye(3), np.array([0.3, 0.0, 0.0]))
+    plain = _closer(rig).detect(_query(T_old, wrong), img_cur, {0: f_old}, {0: img_old})
+    weighted = _closer(rig, axis_weights=(4.0, 9.0)).detect(_query(T_old, wrong), img_cur, {0: f_old}, {0: img_old})
+    assert len(plain) == len(weighted) == 1
+    np.testing.assert_allclose(weighted[0].T, plain[0].T, atol=1e-12)
+    s = np.array([2.0] * 3 + [3.0] * 3)
+    np.testing.assert_allclose(weighted[0].information, plain[0].information * s[:, None] * s[None, :], rtol=1e-12)
+
+
 def test_refuses_a_lookalike_stretch_the_estimate_puts_here(scene):
     """The candidate keyframe really sits 7 m away (a lamp spacing: lamps, joints and trays
     repeat); the estimate wrongly puts it where the mirrored view would see it. Its patches
