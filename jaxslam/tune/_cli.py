@@ -27,6 +27,13 @@ def register(subparsers) -> None:
     t.add_argument("--rounds", type=int, default=2, help="estimator runs per training recording (default 2)")
     t.add_argument("--steps", type=int, default=40, help="loss+gradient evaluations per round (L-BFGS-B; default 40)")
     t.add_argument(
+        "--select",
+        choices=["best", "last"],
+        default="best",
+        help="best (default): one more estimator run per training recording with the last round's weights, "
+        "then keep the start's or a round's weights, whichever whole runs fit the truth best; last: the last round's",
+    )
+    t.add_argument(
         "--truth",
         choices=["auto", "poses", "positions"],
         default="auto",
@@ -84,7 +91,12 @@ def cmd_tune(args: argparse.Namespace) -> int:
     if rig:
         cfg = dataclasses.replace(cfg, rig=load_rig(rig))
     tcfg = TuneConfig(
-        steps=args.steps, rounds=args.rounds, truth=args.truth, lever_arm=tuple(args.lever_arm), devices=args.devices
+        steps=args.steps,
+        rounds=args.rounds,
+        truth=args.truth,
+        lever_arm=tuple(args.lever_arm),
+        devices=args.devices,
+        select=args.select,
     )
     work = Path(args.workdir) if args.workdir else out.with_name(out.stem + "_runs")
     bar = None if args.quiet else (lambda **kw: tqdm(**kw))
@@ -128,6 +140,12 @@ def cmd_tune(args: argparse.Namespace) -> int:
     plot_loss(png, report, tcfg.steps)
     rep = out.with_suffix(".report.json")
     write_report(rep, report)
+    if report.run_rmse_m:
+        print(
+            "whole runs on the training recordings (mean aligned RMSE): "
+            + ", ".join(f"{k} {v:.4f} m" for k, v in report.run_rmse_m.items())
+            + f"; kept: {report.selected}"
+        )
     print(f"wrote {out} (use: jaxslam run REC -o DIR --config {out}), {png.name}, {rep.name}")
     for k, v in weights_summary(report.config).items():
         print(f"  {k}: {v}")

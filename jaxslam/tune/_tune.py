@@ -92,6 +92,13 @@ class TuneConfig:
     solves and estimator runs, the best by training loss kept)."""
     random_range: float = float(np.log(30.0))
     seed: int = 0
+    select: str = "best"
+    """Which configuration :func:`tune` returns: ``best`` runs the estimator once more on
+    the training recordings with the last round's weights, then keeps, of the start and
+    every round's weights, the one whose *whole runs* had the lowest mean aligned position
+    RMSE on the training recordings (the graph loss cannot see how the front end's gates
+    and predictions react to the weights; a whole run can); ``last`` keeps the last round's
+    weights without that run."""
     devices: int = 0
     """JAX devices to shard the training sequences across (round-robin, one host thread per
     device): 0 = every local device, 1 = the default device only. On a CPU-only machine
@@ -111,6 +118,8 @@ class Captured:
     lever_arm: np.ndarray  # (3,)
     truth_kind: str
     ape_m: float | None = None
+    run_rmse_m: float | None = None
+    """The estimator run's own aligned position RMSE against this truth (before re-weighting)."""
 
 
 def _interp_truth(
@@ -455,10 +464,17 @@ class TuneReport:
     estimator_runs: int
     time_s: float
     enhancement: dict[str, Any] | None = None
+    selected: str = ""
+    """Whose weights :attr:`config` holds: ``start`` or ``round N`` (:attr:`TuneConfig.select`)."""
+    run_rmse_m: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Mean aligned position RMSE of the whole estimator runs on the training recordings, per
+    configuration run (``start``, ``round 1``, ...; the last round's only with ``select="best"``)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
             "enhancement": self.enhancement,
+            "selected": self.selected,
+            "train_run_rmse_m": self.run_rmse_m,
             "weights": weights_summary(self.config),
             "loss_history": self.history,
             "rounds": self.rounds,
@@ -482,13 +498,19 @@ def tune(
     progress bar (tqdm's signature)."""
     from ..pipeline._run import run_recording
 
+    if cfg.select not in ("best", "last"):
+        raise ConfigError(f"select must be best or last, got {cfg.select!r}")
     t0 = time.perf_counter()
     work = Path(workdir)
     start = config
     history: list[float] = []
     rounds: list[dict[str, Any]] = []
     runs_done = 0
-    for rnd in range(cfg.rounds):
+    # (whose weights: "start" / "round N", config, mean whole-run RMSE on the training recordings)
+    tried: list[tuple[str, Any, float]] = []
+
+    def run_all(config: Any, tag: str, label: str, weights: str) -> list[Captured]:
+        nonlocal runs_done
         caps: list[Captured] = []
         for path in recordings:
             holder: list[Captured] = []
@@ -497,11 +519,21 @@ def tune(
             def keep(est: Any, res: dict[str, Any], gt: Any, _n: str = name, _h: list = holder) -> None:
                 _h.append(capture(est, res, gt, cfg, _n))
 
-            m = run_recording(path, work / f"round{rnd}" / name, config, plots=False, on_finish=keep)
+            m = run_recording(path, work / tag / name, config, plots=False, on_finish=keep)
             runs_done += 1
-            holder[0].ape_m = m.get("ape_rmse_m")
-            caps.append(holder[0])
-            log(f"round {rnd + 1}: {name}: {len(holder[0].keyframes)} keyframes with truth, APE {_f(m)}")
+            cap = holder[0]
+            cap.ape_m = m.get("ape_rmse_m")
+            cap.run_rmse_m = float(np.sqrt(aligned_position_loss(cap.values, cap)))
+            caps.append(cap)
+            log(
+                f"{label}: {name}: {len(cap.keyframes)} keyframes with truth, APE {_f(m)}, "
+                f"aligned {cap.truth_kind} RMSE {cap.run_rmse_m:.4f} m"
+            )
+        tried.append((weights, config, float(np.mean([c.run_rmse_m for c in caps]))))
+        return caps
+
+    for rnd in range(cfg.rounds):
+        caps = run_all(config, f"round{rnd}", f"round {rnd + 1}", f"round {rnd}" if rnd else "start")
         pbar = bar(total=cfg.steps + 1, desc=f"tune round {rnd + 1}") if bar is not None else None
 
         def progress(step: int, loss: float, _p: Any = pbar) -> None:
@@ -519,6 +551,7 @@ def tune(
         rounds.append(
             {
                 "train_ape_m": {c.name: c.ape_m for c in caps},
+                "train_run_rmse_m": {c.name: c.run_rmse_m for c in caps},
                 "graph_rmse_before_m": float(np.sqrt(res.history[0])),
                 "graph_rmse_after_m": float(np.sqrt(res.history[-1])),
                 "theta": dict(zip(GROUPS, res.theta.tolist())),
@@ -531,6 +564,15 @@ def tune(
             f"round {rnd + 1}: aligned RMSE on the training graphs {np.sqrt(res.history[0]):.4f} -> "
             f"{np.sqrt(res.history[-1]):.4f} m"
         )
+    selected = f"round {cfg.rounds}"
+    if cfg.select == "best":
+        run_all(config, "validation", "validation", selected)
+        selected, config, _ = min(tried, key=lambda t: t[2])
+        log(
+            "whole runs on the training recordings, mean aligned RMSE: "
+            + ", ".join(f"{w} {v:.4f} m" for w, _, v in tried)
+            + f"; keeping the weights of {selected}"
+        )
     heldout = []
     for path in holdout:
         name = Path(path).stem
@@ -542,7 +584,16 @@ def tune(
             row[f"registered_{label}"] = m.get("registered_frames")
         log(f"held out {name}: APE {_g(row['ape_before_m'])} -> {_g(row['ape_after_m'])} m")
         heldout.append(row)
-    return TuneReport(config, history, rounds, heldout, runs_done, time.perf_counter() - t0)
+    return TuneReport(
+        config,
+        history,
+        rounds,
+        heldout,
+        runs_done,
+        time.perf_counter() - t0,
+        selected=selected,
+        run_rmse_m={w: v for w, _, v in tried},
+    )
 
 
 def _f(m: dict[str, Any]) -> str:

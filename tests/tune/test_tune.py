@@ -76,6 +76,53 @@ def test_random_search_keeps_the_best_draw() -> None:
     assert all(a >= b for a, b in zip(res.history, res.history[1:]))
 
 
+@pytest.mark.parametrize(
+    ("select", "errors", "kept"),
+    [("best", (0.3, 0.1, 0.2), "round 1"), ("best", (0.1, 0.3, 0.2), "start"), ("last", (0.3, 0.1, 0.2), "round 2")],
+)
+def test_tune_keeps_the_weights_whose_whole_runs_fit_best(monkeypatch, tmp_path, select, errors, kept) -> None:
+    """The estimator, the capture and the graph tuning replaced by stand-ins: configuration
+    ``n`` (the start is 0, round r's weights r) makes whole runs with aligned RMSE
+    ``errors[n]``; ``select="best"`` keeps the lowest (one validation run more per
+    recording), ``last`` the last round's."""
+    from jaxslam.pipeline import _run
+    from jaxslam.tune import _tune
+
+    runs: list[int] = []
+
+    def run_recording(path, out, config, plots, on_finish):
+        runs.append(config)
+        on_finish(config, {}, None)
+        return {"ape_rmse_m": errors[config]}
+
+    def capture(est, res, gt, cfg, name):
+        return types.SimpleNamespace(keyframes=np.arange(5), truth_kind="poses", values=est, ape_m=None, name=name)
+
+    def tune_graphs(caps, cfg, progress):
+        return _tune.GraphTuneResult(np.zeros(len(GROUPS)), [1.0, 0.5], [1.0], 0.0, 0.0)
+
+    monkeypatch.setattr(_run, "run_recording", run_recording)
+    monkeypatch.setattr(_tune, "capture", capture)
+    monkeypatch.setattr(_tune, "tune_graphs", tune_graphs)
+    monkeypatch.setattr(_tune, "apply_weights", lambda config, theta: config + 1)
+    monkeypatch.setattr(_tune, "aligned_position_loss", lambda values, cap: errors[values] ** 2)
+    rep = _tune.tune(["a.bag", "b.bag"], 0, TuneConfig(rounds=2, select=select), tmp_path, log=lambda s: None)
+    assert rep.selected == kept
+    assert rep.config == (0 if kept == "start" else int(kept.split()[1]))
+    assert runs == ([0, 0, 1, 1, 2, 2] if select == "best" else [0, 0, 1, 1])
+    assert rep.estimator_runs == len(runs)
+    assert set(rep.run_rmse_m) == ({"start", "round 1", "round 2"} if select == "best" else {"start", "round 1"})
+    assert rep.run_rmse_m["start"] == pytest.approx(errors[0])
+
+
+def test_tune_refuses_an_unknown_selection(tmp_path) -> None:
+    from jaxslam.errors import ConfigError
+    from jaxslam.tune import _tune
+
+    with pytest.raises(ConfigError, match="select must be best or last"):
+        _tune.tune([], PipelineConfig(), TuneConfig(select="median"), tmp_path)
+
+
 def test_apply_weights_maps_groups_to_the_config() -> None:
     cfg = PipelineConfig()
     assert apply_weights(cfg, np.zeros(len(GROUPS))) == cfg
@@ -142,5 +189,9 @@ def test_cli_end_to_end_with_prism_positions(tmp_path, short_tunnel_bag) -> None
     rep = json.loads(out.with_suffix(".report.json").read_text())
     assert rep["rounds"][0]["truth"] == "positions"
     assert 1 <= len(rep["loss_history"]) <= 3 and all(np.isfinite(rep["loss_history"]))  # the budget holds
-    assert rep["heldout"] == [] and rep["estimator_runs"] == 1
+    # one training run with the start's weights, one with round 1's; the better whole run is kept
+    assert rep["heldout"] == [] and rep["estimator_runs"] == 2
+    assert rep["selected"] in ("start", "round 1") and set(rep["train_run_rmse_m"]) == {"start", "round 1"}
+    best = min(rep["train_run_rmse_m"], key=rep["train_run_rmse_m"].get)
+    assert rep["selected"] == best
     assert Path(out.with_suffix(".loss.png")).stat().st_size > 1000
