@@ -55,13 +55,16 @@ def parse_spec(spec: str) -> tuple[int, str]:
     return int(seed), light or "uneven"
 
 
-def theta_total(rounds: list[dict[str, Any]]) -> Any:
-    """Log-sigma multipliers of a tuned configuration relative to the start (rounds add)."""
+def theta_total(rounds: list[dict[str, Any]], selected: str | None = None) -> Any:
+    """Log-sigma multipliers of a tuned configuration relative to the start: the rounds'
+    add up to the one whose weights were kept (``selected``: ``start``, ``round N``, or None
+    for the last)."""
     import numpy as np
 
     from jaxslam.tune import GROUPS
 
-    return np.sum([[rd["theta"][g] for g in GROUPS] for rd in rounds], axis=0)
+    n = len(rounds) if not selected else 0 if selected == "start" else int(selected.split()[1])
+    return np.sum([[rd["theta"][g] for g in GROUPS] for rd in rounds[:n]] or [[0.0] * len(GROUPS)], axis=0)
 
 
 def graph_level(held: list[Path], start: Any, thetas: dict[str, Any], args: Any, work: Path) -> list[dict[str, Any]]:
@@ -173,8 +176,8 @@ def main() -> None:
         prev = json.loads(Path(args.graph_eval_from).read_text())
         thetas = {
             "before": np.zeros(len(GROUPS)),
-            "after": theta_total(prev["gradient_rounds"]),
-            "random": theta_total(prev["random_rounds"]),
+            "after": theta_total(prev["gradient_rounds"], prev.get("selected", {}).get("gradient")),
+            "random": theta_total(prev["random_rounds"], prev.get("selected", {}).get("random")),
             "defaults": theta_defaults,
         }
         rows = graph_level(held, wrong, thetas, args, work)
@@ -236,8 +239,8 @@ def main() -> None:
     g, r = results["gradient"], results["random"]
     thetas = {
         "before": np.zeros(len(GROUPS)),
-        "after": theta_total(g.rounds),
-        "random": theta_total(r.rounds),
+        "after": theta_total(g.rounds, getattr(g, "selected", None)),
+        "random": theta_total(r.rounds, getattr(r, "selected", None)),
         "defaults": theta_defaults,
     }
     graph_rows = graph_level(held, wrong, thetas, args, work)
