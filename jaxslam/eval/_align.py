@@ -215,7 +215,9 @@ def umeyama(src_xyz: np.ndarray, dst_xyz: np.ndarray, with_scale: bool = False) 
     var_x = np.sum(xc * xc) / n
     cov = (yc.T @ xc) / n
     u, d, vt = np.linalg.svd(cov)
-    if np.count_nonzero(d > np.finfo(np.float64).eps) < 2:
+    # rank with numpy's (and evo's) tolerance, relative to the largest singular value: an
+    # absolute eps let rounding noise (~1e-15 on a 10 m line) count as a second direction
+    if np.count_nonzero(d > d[0] * max(cov.shape) * np.finfo(np.float64).eps) < 2:
         raise InputFormatError(
             f"cannot align: the {n} matched positions are degenerate (all on one line, or fewer than 3); "
             "use align 'none' or 'origin'"
