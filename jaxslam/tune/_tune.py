@@ -15,7 +15,9 @@ weights)::
           with several JAX devices the sequences are sharded across them, one host thread
           per device, each sequence's arrays committed to its device)──▶ theta
     theta ──apply_weights──▶ a new PipelineConfig (``imu.noise_scale``, the rig's bias random
-        walks, ``{lidar,vision,loop}.axis_weights``) ──▶ next round / weights.yaml
+        walks, ``{lidar,vision,loop}.axis_weights``) ──▶ next round
+    after the last round (``select="best"``): one more run per recording with its weights;
+        the start's or a round's weights, whichever whole runs fit the truth best ──▶ weights.yaml
 
 Only relative weights matter (SPEC §6: scaling every sigma by one factor leaves the optimum
 unchanged, up to the fixed priors): the common scale, which the loss hardly sees, is held
