@@ -52,6 +52,8 @@ def recording(work: Path, seed: int, lighting: str, length: float) -> Path:
 def parse_spec(spec: str) -> tuple[int, str]:
     """``SEED[:LIGHTING]`` -> (seed, lighting); the lighting defaults to uneven."""
     seed, _, light = spec.partition(":")
+    if not seed.isdigit() or light not in ("", "uneven", "dark", "normal"):
+        raise SystemExit(f"a recording is SEED[:uneven|dark|normal], got {spec!r}")
     return int(seed), light or "uneven"
 
 
