@@ -204,11 +204,17 @@ def preintegrate(
     bshape = tuple(np.shape(bias_hat))
     if bshape[-1:] != (6,) or len(bshape) > len(batch) + 1 or bshape[:-1] != batch[len(batch) - len(bshape) + 1 :]:
         raise ValueError(f"bias_hat must have shape (6,) or (*batch, 6) with batch {batch}, got {bshape}")
-    if _is_concrete(acc, gyro, dt, mask):
+    out = _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()), _isotropic(params))
+    # Concrete inputs are checked through the kernel's own ``valid`` flags (the same
+    # conditions, computed in the same pass over the data); numpy only locates the first
+    # offending sample when one is there, so the usual case pays no second pass.
+    if _is_concrete(acc, gyro, dt, mask) and not bool(np.all(np.asarray(out.valid))):
         dt_np = np.asarray(dt, dtype=np.float64)
         use_np = dt_np > 0 if mask is None else np.asarray(mask)
         _check_finite_positive(dt_np, use_np, np.asarray(acc, dtype=np.float64), np.asarray(gyro, dtype=np.float64))
-    return _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()), _isotropic(params))
+        bad = int(np.argmin(np.asarray(out.valid).reshape(-1)))
+        raise ValueError(f"interval {bad} (flattened batch index) holds a non-finite or non-positive sample")
+    return out
 
 
 def _isotropic(params: PreintegrationParams) -> bool:
