@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -38,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import jax
 
 import jaxslam  # noqa: F401  (float64 on)
+from jaxslam._machine import machine_info
 from jaxslam.vision import aba_clahe, clahe, equalize_hist, gamma_correct
 
 EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
@@ -203,7 +203,7 @@ def main(argv=None) -> int:
         "metrics": metrics,
         "sice_pairs": sice_pairs,
         "images": n_img,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load": os.getloadavg()},
+        "machine": machine_info(),
     }
     print(f"{n_img} images; hard CLAHE vs OpenCV, fraction within ±1 grey level (min / mean per image):")
     for k, v in agreement.items():

@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import re
 import sys
 import time
@@ -43,6 +41,7 @@ import jax
 import jax.numpy as jnp
 
 import jaxslam  # noqa: F401  (float64)
+from jaxslam._machine import machine_info
 from jaxslam.factors import PreintegrationParams, predict_imu_state, preintegrate
 from jaxslam.lie import SE3, SO3
 
@@ -417,7 +416,7 @@ def main(argv: list[str] | None = None) -> dict:
         "noise": d["noise"],
         "extrinsics_T_BS": d["extrinsics"],
         "gravity": GRAVITY,
-        "machine": f"{platform.machine()} {os.cpu_count()} cpus, jax {jax.__version__}",
+        "machine": machine_info(),
     }
     if orig is not None:
         result["euroc_original_1s"] = {

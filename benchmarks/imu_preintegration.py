@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -38,6 +36,7 @@ import gtsam
 import jax
 
 import jaxslam  # noqa: F401  (float64)
+from jaxslam._machine import machine_info
 from jaxslam.core import BiasVar, Pose3Var, VelocityVar, factor_cost
 from jaxslam.factors import ImuFactor, PreintegrationParams, cut_imu_stream, preintegrate
 
@@ -253,7 +252,7 @@ def main(argv: list[str] | None = None) -> dict:
         "max_samples_per_interval": int(iv.dt.shape[1]),
         "interval_s": args.interval_s,
         "gtsam_variant": "tangent" if variant_is_tangent else "manifold?",
-        "machine": f"{platform.machine()} {os.cpu_count()} cpus, jax {jax.__version__}",
+        "machine": machine_info(),
     }
 
     print(

@@ -42,8 +42,6 @@ import argparse
 import dataclasses
 import importlib.metadata
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -60,6 +58,7 @@ from jax import Array
 from tqdm import tqdm
 
 import jaxslam  # noqa: F401  (float64)
+from jaxslam._machine import machine_info
 from jaxslam.core import BiasVar, Factor, Gaussian, Pose3Var, Values, VelocityVar, factor_dataclass
 from jaxslam.factors import (
     BiasRandomWalkFactor,
@@ -549,8 +548,7 @@ def main(argv: list[str] | None = None) -> dict:
             "gtsam_loop": pb.gtsam_preint_s * 1e3,
         },
         "config": dataclasses.asdict(IncrementalConfig()),
-        "machine": f"{platform.machine()} {os.cpu_count()} cpus, jax {jax.__version__}, "
-        f"gtsam {importlib.metadata.version('gtsam')}",
+        "machine": {**machine_info(), "gtsam": importlib.metadata.version("gtsam")},
     }
 
     r = result

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from jaxslam._machine import machine_info
 from jaxslam.lidar import (
     IcpConfig,
     ScanContextDatabase,
@@ -244,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         bool(r.degenerate and np.max(np.abs(r.weak_directions[:, 3:] @ a)) > 0.7) for r, a in zip(regs, axis_gt)
     ]
     out = {
-        "machine": platform.processor() or platform.machine(),
+        "machine": machine_info(),
         "scans": len(times),
         "seconds": [float(times[0]), float(times[-1])],
         "points_per_scan": float(np.mean(n_points)),

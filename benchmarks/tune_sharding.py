@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -81,6 +80,8 @@ def main() -> None:
     speedup = one["evaluation_s_median"] / many["evaluation_s_median"]
     print(f"speed-up with {len(devices)} devices: {speedup:.2f}x; same history and weights: {same}")
     if args.json:
+        from jaxslam._machine import machine_info
+
         out = {
             "devices": [str(d) for d in devices],
             "host_devices": args.host_devices,
@@ -90,7 +91,7 @@ def main() -> None:
             "runs": list(rows.values()),
             "speedup": speedup,
             "same_result": same,
-            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__},
+            "machine": machine_info(),
         }
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=2) + "\n")

@@ -134,7 +134,9 @@ def print_summary(m: dict[str, Any], out: str | Path, paper: bool = False) -> No
     )
     print(
         f"time: {m['runtime_s']:.1f} s for {m['sequence_duration_s']:.1f} s of recording "
-        f"({m['runtime_s'] / max(m['sequence_duration_s'], 1e-9):.2f}x real time)"
+        f"({m['runtime_s'] / max(m['sequence_duration_s'], 1e-9):.2f}x real time"
+        + (f" on {m['machine']['cpu']}, {m['machine']['cpus']} CPUs" if "machine" in m else "")
+        + ")"
     )
     if m.get("warnings"):
         print("warnings: " + "; ".join(f"{k} x{v}" for k, v in m["warnings"].items()))

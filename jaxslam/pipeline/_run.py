@@ -18,6 +18,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from .._machine import machine_info
 from ..errors import ConfigError, InputFormatError
 from ..io import open_recording, write_kitti, write_ply, write_tum
 from ..io._reindex import reindex
@@ -181,6 +182,7 @@ def run_recording(
         "scale_free_visual_factors": est.direction_edges,
         "mapping": stats,
         "timing_s": {k: round(v, 3) for k, v in est.timing.items()},
+        "machine": machine_info(),
         "warnings": dict(est.warnings),
     }
     aligned: Any = traj
