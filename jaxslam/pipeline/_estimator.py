@@ -135,6 +135,7 @@ class Estimator:
         self.keyframes: list[Keyframe] = []
         self.state: NavState | None = None  # estimate at the last keyframe
         self.warnings: Counter[str] = Counter()
+        self.zupt_count = 0  # zero-velocity priors added (ImuConfig.zupt)
         self.ground_truth: list[PoseStamped] = []
         self.fixes: list[PositionFix] = []
         self.visual_edges: list[VisualMeasurement] = []
@@ -163,9 +164,18 @@ class Estimator:
 
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxslam-vision")
 
+    def _stationary(self, acc: np.ndarray, dt: np.ndarray) -> bool:
+        """The keyframe interval's samples ``acc`` (held ``dt`` each) look like standing still
+        (see ``ImuConfig.zupt``): no more spread on any axis than the sensor's noise."""
+        cfg = self.cfg.imu
+        if not cfg.zupt or len(acc) < 10 or float(np.sum(dt)) < cfg.zupt_min_seconds:
+            return False
+        sigma = self.cfg.rig.accelerometer_noise_density / np.sqrt(float(np.median(dt)))
+        return bool(np.all(np.std(acc, axis=0) < cfg.zupt_noise_ratio * sigma))
+
     def _tag(self, kind: str, factor: Any) -> Any:
-        """Keep every factor with its kind (``prior``, ``imu``, ``bias``, ``lidar``, ``vision``,
-        ``direction``, ``loop``): ``jaxslam tune`` re-weights the final graph by kind."""
+        """Keep every factor with its kind (``prior``, ``imu``, ``bias``, ``zupt``, ``lidar``,
+        ``vision``, ``direction``, ``loop``): ``jaxslam tune`` re-weights the final graph by kind."""
         self.graph.append((kind, factor))
         return factor
 
@@ -364,6 +374,11 @@ class Estimator:
             )
             bias_walk = BiasRandomWalkFactor.create(BiasVar(ids[0]), BiasVar(ids[1]), t - prev.t, self.params)
             factors.append(self._tag("bias", bias_walk))
+            if self._stationary(acc, dt):
+                sigma = self.cfg.imu.zupt_sigma
+                zero = PriorFactor.create(VelocityVar(ids[1]), np.zeros((1, 3)), Gaussian.isotropic(3, sigma))
+                factors.append(self._tag("zupt", zero))
+                self.zupt_count += 1
             values = {
                 Pose3Var(ids[1]): _se3(pred.T[None]),
                 VelocityVar(ids[1]): pred.v[None],

@@ -179,6 +179,7 @@ def run_recording(
         "visual_loops_accepted": len(est.visual_loops.accepted) if est.visual_loops else 0,
         "visual_loops_attempted": est.visual_loops.attempts if est.visual_loops else 0,
         "visual_scale": est._vo_scale,
+        "zero_velocity_updates": est.zupt_count,
         "scale_free_visual_factors": est.direction_edges,
         "mapping": stats,
         "timing_s": {k: round(v, 3) for k, v in est.timing.items()},

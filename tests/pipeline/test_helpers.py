@@ -661,3 +661,26 @@ def test_guided_matching_registers_a_repetitive_pair_only_near_the_prediction():
     assert len(np.unique(pairs[:, 1])) == len(pairs)  # each feature of b used once
     far = T_ab @ host.make_pose(host.so3_exp(np.radians([0.0, 0.0, 20.0])), np.zeros(3))
     assert on.relative(a, b, far) is None
+
+
+def test_zero_velocity_detector_takes_noise_only_intervals():
+    """``ImuConfig.zupt``: an interval whose accelerometer spread is the sensor's white noise
+    counts as standing still (whatever the gyro says: a turn on the spot keeps the IMU in place);
+    the vibration of a moving robot, a short interval or ``zupt: false`` do not."""
+    from jaxslam.pipeline import Estimator
+
+    cfg = PipelineConfig()
+    est = Estimator(cfg)
+    rng = np.random.default_rng(0)
+    rate = 200.0
+    sigma = cfg.rig.accelerometer_noise_density * np.sqrt(rate)
+    n = 100  # 0.5 s
+    dt = np.full(n, 1.0 / rate)
+    still = np.array([0.0, 0.0, 9.81]) + sigma * rng.standard_normal((n, 3))
+    assert est._stationary(still, dt)
+    t = np.arange(n) / rate
+    shaking = still + 0.06 * np.sin(2 * np.pi * 7.0 * t)[:, None]  # 0.04 m/s^2 rms per axis
+    assert not est._stationary(shaking, dt)
+    assert not est._stationary(still[:30], dt[:30])  # 0.15 s: too short to tell
+    off = Estimator(cfg.replace(imu={"zupt": False}))
+    assert not off._stationary(still, dt)

@@ -97,6 +97,7 @@ def test_run_recording_writes_the_results_folder(bag, config, tmp_path) -> None:
         assert key in saved, key
     assert saved["ape_rmse_m"] == pytest.approx(m["ape_rmse_m"])
     assert saved["machine"]["cpus"] >= 1 and saved["machine"]["cpu"]  # timings say what they ran on
+    assert saved["zero_velocity_updates"] > 0  # the stops at both ends and the turn on the spot
     assert saved["ape_rmse_m"] < 0.1
     assert saved["loops_false"] in (0, None)
     # the written trajectory gives the same APE through the evaluation CLI (evo-equal numbers)
