@@ -46,34 +46,18 @@ def simulate(workdir: Path, seed: int, lighting: str, length: float) -> Path:
 
 
 def edge_ratios(est, res, gt) -> dict:
-    """Per kind of odometry factor between consecutive keyframes, the length of its relative
-    translation over the true one (ground truth at the keyframe times; pairs that moved at
-    least 0.1 m): median, and the total of the lengths over the true total. A visual or LiDAR
-    length biased along the tunnel axis shows here before it shows in the APE."""
+    """Each odometry kind's length against ground truth at the keyframe times
+    (:func:`jaxslam.pipeline._run.odometry_length_ratio`: pairs, median and total ratio)."""
     import numpy as np
 
     from jaxslam.lie import host
+    from jaxslam.pipeline._run import odometry_length_ratio
 
     if gt is None or not len(res["times"]):
         return {}
     g_t = np.asarray(gt.timestamps)
     G = host.params_to_matrix(np.asarray(gt.poses.params))[np.searchsorted(g_t, res["times"]).clip(0, len(g_t) - 1)]
-    out = {}
-    for kind in ("visual odometry", "lidar odometry"):
-        ours, true = [], []
-        for k, i, j, T, _ in est.edges:
-            if k == kind and j == i + 1:
-                ours.append(float(np.linalg.norm(T[:3, 3])))
-                true.append(float(np.linalg.norm((host.inverse(G[i]) @ G[j])[:3, 3])))
-        a, b = np.array(ours), np.array(true)
-        moved = b >= 0.1
-        if moved.any():
-            out[kind] = {
-                "pairs": int(moved.sum()),
-                "median": float(np.median(a[moved] / b[moved])),
-                "total": float(a[moved].sum() / b[moved].sum()),
-            }
-    return out
+    return odometry_length_ratio(est, G)
 
 
 def main() -> None:

@@ -178,6 +178,14 @@ class VisionConfig:
     depth_scale: bool = True
     """Take the translation's length from the LiDAR depths of both keyframes (3-D to 3-D),
     its direction and the rotation from the reprojection fit (see ``VisualFrontend``)."""
+    length_sigma_ratio: float = 0.0
+    """A relative standard deviation of the visual translation's length (0.01 = 1 % of the
+    step), added to the factor's covariance along the translation (after
+    ``information_scale``) on keyframe pairs where the LiDAR odometry is anchored along the
+    axis throughout. The reprojection information states the length to a few mm, but the
+    depth-based length can be biased by about as much in the dark (see README); with this
+    term the anchored LiDAR decides the length there. Where the LiDAR is degenerate the
+    vision keeps its full weight (softening it there hands the axis to the IMU)."""
     scale_depth: str = "map"
     """Depths the translation length is taken from (``depth_scale``): ``"map"``, the local map
     (many features, but its scans sit at LiDAR-odometry poses, so along a degenerate tunnel
@@ -404,6 +412,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
             if isinstance(v, bool) or not isinstance(v, int | float):
                 raise ConfigError(f"{where}.{k}: expected a number, got {v!r}")
             v = float(v)
+            if k == "length_sigma_ratio" and not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"{where}.{k}: expected a relative sigma >= 0 (0 = off), got {v!r}")
         elif isinstance(default, str):
             if not isinstance(v, str):
                 raise ConfigError(f"{where}.{k}: expected a string, got {v!r}")

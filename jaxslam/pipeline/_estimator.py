@@ -54,7 +54,7 @@ from ._config import PipelineConfig
 from ._imu import ImuBuffer, NavState, gravity_alignment, preintegrate_interval, propagate
 from ._lidar_frontend import LidarOdometry, ScanResult, axis_weighted, information_for_factor
 from ._loop import Loop, LoopCloser
-from ._visual import DirectionMeasurement, KeyframeFeatures, VisualFrontend, VisualMeasurement
+from ._visual import DirectionMeasurement, KeyframeFeatures, VisualFrontend, VisualMeasurement, with_length_sigma
 from ._visual_loop import LoopQuery, VisualLoop, VisualLoopCloser
 
 
@@ -136,6 +136,7 @@ class Estimator:
         self.state: NavState | None = None  # estimate at the last keyframe
         self.warnings: Counter[str] = Counter()
         self.zupt_count = 0  # zero-velocity priors added (ImuConfig.zupt)
+        self.length_softened = 0  # visual factors given vision.length_sigma_ratio (LiDAR anchored)
         self.ground_truth: list[PoseStamped] = []
         self.fixes: list[PositionFix] = []
         self.visual_edges: list[VisualMeasurement] = []
@@ -556,6 +557,10 @@ class Estimator:
                     vm.T = vm.T.copy()
                     vm.T[:3, 3] *= self._vo_scale
                 info = axis_weighted(vm.information, self.cfg.vision.axis_weights)
+                ratio = self.cfg.vision.length_sigma_ratio
+                if ratio > 0 and all((k, k + 1) in self._lidar_rel for k in range(vm.i, vm.j)):
+                    info = with_length_sigma(info, vm.T[:3, 3], ratio)
+                    self.length_softened += 1
                 if self._scaled_vision:
                     scaled = ScaledBetweenFactor.create(
                         Pose3Var(np.array([vm.i])),

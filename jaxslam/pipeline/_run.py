@@ -78,6 +78,32 @@ def false_loops(
     return bad
 
 
+def odometry_length_ratio(est: Estimator, gt_poses: np.ndarray, min_motion: float = 0.1) -> dict[str, Any]:
+    """How long each odometry front end measures the motion against ground truth: per kind
+    (``lidar odometry``, ``visual odometry``), over its factors between consecutive keyframes
+    whose true motion is at least ``min_motion`` m, the median of measured / true translation
+    length and the total measured over the total true length (1.0 = unbiased; 0.99 = the
+    front end sees the path 1 % short). The measurements are the front ends' own, before the
+    graph (and the visual length-scale variable) weighs them: a length biased along the
+    tunnel axis shows here before it shows in the APE. ``gt_poses`` (K, 4, 4) at the
+    keyframe times."""
+    out: dict[str, Any] = {}
+    for kind in ("visual odometry", "lidar odometry"):
+        rows = [
+            (float(np.linalg.norm(T[:3, 3])), float(np.linalg.norm((host.inverse(gt_poses[i]) @ gt_poses[j])[:3, 3])))
+            for k, i, j, T, _ in est.edges
+            if k == kind and j == i + 1
+        ]
+        m = np.array([r for r in rows if r[1] >= min_motion]).reshape(-1, 2)
+        if len(m):
+            out[kind] = {
+                "pairs": len(m),
+                "median": float(np.median(m[:, 0] / m[:, 1])),
+                "total": float(m[:, 0].sum() / m[:, 1].sum()),
+            }
+    return out
+
+
 def accepted_loops(est: Estimator) -> list[Any]:
     """Every accepted loop, LiDAR and visual (each has ``i``, ``j``, ``T``, ``information``)."""
     return [*(est.loops.accepted if est.loops else []), *(est.visual_loops.accepted if est.visual_loops else [])]
@@ -180,6 +206,7 @@ def run_recording(
         "visual_loops_attempted": est.visual_loops.attempts if est.visual_loops else 0,
         "visual_scale": est._vo_scale,
         "zero_velocity_updates": est.zupt_count,
+        "visual_lengths_softened": est.length_softened,
         "scale_free_visual_factors": est.direction_edges,
         "mapping": stats,
         "timing_s": {k: round(v, 3) for k, v in est.timing.items()},
@@ -208,6 +235,8 @@ def run_recording(
             )
             gt_T = host.params_to_matrix(np.asarray(g_at.poses.params))  # type: ignore[union-attr]
             metrics["loops_false"] = false_loops(est, gt_T) if len(gt_T) == len(poses) else None
+            if len(gt_T) == len(poses):
+                metrics["odometry_length_ratio"] = odometry_length_ratio(est, gt_T)
             if plots:
                 ev.plot_ape_over_distance(out / "errors.png", a)
         except InputFormatError as e:

@@ -341,6 +341,20 @@ class VisualFrontend:
         return out
 
 
+def with_length_sigma(info: np.ndarray, t: np.ndarray, ratio: float) -> np.ndarray:
+    """The information (6, 6) of a relative pose (body tangent, [rotation, translation]) with
+    a variance ``(ratio |t|)^2`` added along the translation ``t``: ``(I^-1 + s^2 u u^T)^-1``
+    by the Sherman-Morrison formula (no inverse of a possibly ill-conditioned ``I``)."""
+    n = float(np.linalg.norm(t))
+    if n < 1e-9:
+        return info
+    u = np.zeros(6)
+    u[3:] = t / n
+    s2 = (ratio * n) ** 2
+    iu = info @ u
+    return info - s2 * np.outer(iu, iu) / (1.0 + s2 * float(u @ iu))
+
+
 def motion_only(
     X: np.ndarray, x: np.ndarray, T_ba: np.ndarray, f: float, min_inliers: int, iterations: int = 12
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

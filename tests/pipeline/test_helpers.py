@@ -232,6 +232,7 @@ def test_wrong_types_raise(data):
     [
         {"vision": {"detector": 5}},
         {"vision": {"scale_depth": "lidar"}},
+        {"vision": {"length_sigma_ratio": -0.01}},
         {"rig": {"lidar_model": None}},
         {"imu": {"noise_scale": True}},
         {"vision": {"max_keypoints": 10.5}},
@@ -684,3 +685,56 @@ def test_zero_velocity_detector_takes_noise_only_intervals():
     assert not est._stationary(still[:30], dt[:30])  # 0.15 s: too short to tell
     off = Estimator(cfg.replace(imu={"zupt": False}))
     assert not off._stationary(still, dt)
+
+
+def test_odometry_length_ratio_compares_each_front_end_with_ground_truth():
+    """Closed form: visual measurements 2 % short and LiDAR ones exact along a curved path
+    give 0.98 and 1.0; a loop closure and a standing-still pair are left out."""
+    from types import SimpleNamespace
+
+    from jaxslam.pipeline._run import odometry_length_ratio
+
+    rng = np.random.default_rng(3)
+    n = 12
+    gt = np.stack([host.se3_exp(np.r_[0.1 * rng.normal(size=3), k * 0.4, 0.1 * np.sin(k), 0.0]) for k in range(n)])
+    gt[5] = gt[4]  # standing still from 4 to 5: no motion to compare
+    edges = []
+    for k in range(1, n):
+        T = host.inverse(gt[k - 1]) @ gt[k]
+        short = T.copy()
+        short[:3, 3] *= 0.98
+        edges.append(("lidar odometry", k - 1, k, T, np.eye(6)))
+        edges.append(("visual odometry", k - 1, k, short, np.eye(6)))
+    edges.append(("loop closure", 0, n - 1, np.eye(4), np.eye(6)))  # wrong on purpose: not counted
+    edges.append(("lidar odometry", 0, 5, np.eye(4), np.eye(6)))  # not consecutive: not counted
+    out = odometry_length_ratio(SimpleNamespace(edges=edges), gt)  # type: ignore[arg-type]
+    assert set(out) == {"lidar odometry", "visual odometry"}
+    moved = [k for k in range(1, n) if np.linalg.norm((host.inverse(gt[k - 1]) @ gt[k])[:3, 3]) >= 0.1]
+    assert len(moved) < n - 1  # the still pair is left out
+    for kind, want in (("lidar odometry", 1.0), ("visual odometry", 0.98)):
+        assert out[kind]["pairs"] == len(moved)
+        assert out[kind]["total"] == pytest.approx(want, abs=1e-12)
+        assert out[kind]["median"] == pytest.approx(want, abs=1e-12)
+
+
+def test_length_sigma_adds_variance_along_the_translation_only():
+    """``vision.length_sigma_ratio``: the information equals the inverse of the covariance with
+    ``(ratio |t|)^2`` added along ``t`` (closed form), the length's variance grows by exactly
+    that much, and the information along any direction orthogonal to ``info @ u`` is kept."""
+    from jaxslam.pipeline._visual import with_length_sigma
+
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(6, 6))
+    info = A @ A.T + 0.1 * np.eye(6)
+    t = np.array([0.25, -0.02, 0.01])
+    out = with_length_sigma(info, t, 0.01)
+    u = np.r_[np.zeros(3), t / np.linalg.norm(t)]
+    cov = np.linalg.inv(info) + (0.01 * np.linalg.norm(t)) ** 2 * np.outer(u, u)
+    np.testing.assert_allclose(out, np.linalg.inv(cov), rtol=1e-9, atol=1e-9)
+    var_before, var_after = u @ np.linalg.inv(info) @ u, u @ np.linalg.inv(out) @ u
+    assert var_after - var_before == pytest.approx((0.01 * np.linalg.norm(t)) ** 2, rel=1e-9)
+    iu = info @ u
+    z = rng.normal(size=6)
+    z -= (z @ iu) / (iu @ iu) * iu  # orthogonal to info @ u
+    assert z @ out @ z == pytest.approx(z @ info @ z, rel=1e-9)
+    np.testing.assert_array_equal(with_length_sigma(info, np.zeros(3), 0.01), info)  # no motion: unchanged

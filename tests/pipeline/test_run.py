@@ -100,6 +100,10 @@ def test_run_recording_writes_the_results_folder(bag, config, tmp_path) -> None:
     assert saved["zero_velocity_updates"] > 0  # the stops at both ends and the turn on the spot
     assert saved["ape_rmse_m"] < 0.1
     assert saved["loops_false"] in (0, None)
+    ratios = saved["odometry_length_ratio"]  # each front end's length against ground truth
+    assert ratios["lidar odometry"]["pairs"] > 0
+    for r in ratios.values():
+        assert 0.9 < r["total"] < 1.1 and 0.9 < r["median"] < 1.1, ratios
     # the written trajectory gives the same APE through the evaluation CLI (evo-equal numbers)
     from jaxslam.cli import main
 
