@@ -126,6 +126,17 @@ def test_threaded_vision_is_deterministic(records, config) -> None:
     np.testing.assert_array_equal(a, b)
 
 
+def test_length_sigma_softens_only_where_the_lidar_is_anchored(records, config, baseline) -> None:
+    """``vision.length_sigma_ratio``: every visual factor over keyframe pairs whose LiDAR
+    odometry was anchored along the axis throughout (and no other) gets the length variance;
+    off by default; the run stays accurate."""
+    assert baseline[0].length_softened == 0
+    est, _, ape = _run(records, config.replace(vision={"length_sigma_ratio": 0.015}))
+    anchored = [vm for vm in est.visual_edges if all((k, k + 1) in est._lidar_rel for k in range(vm.i, vm.j))]
+    assert 0 < est.length_softened == len(anchored) < len(est.visual_edges) + 1
+    assert ape < baseline[2] + 0.05, (ape, baseline[2])
+
+
 def test_cli_run_shows_progress(bag, tmp_path, capsys) -> None:
     """``jaxslam run`` without ``-q``: the progress bar starts with an unknown total (it once
     crashed formatting None). Four seconds travel less than RPE's 1 m delta: the run still
