@@ -92,7 +92,8 @@ def _noise(gtsam: Any, factor: Factor, k: int, vtype: type) -> Any:
         r = r[np.ix_(_POSE2_PERM, _POSE2_PERM)]
     model = gtsam.noiseModel.Gaussian.SqrtInformation(r)
     if factor.robust is not None:
-        kk = float(np.asarray(factor.robust.k))
+        kk_all = np.asarray(factor.robust.k)  # shared (scalar) or per constraint (N,)
+        kk = float(kk_all if kk_all.ndim == 0 else kk_all[k])
         est = {
             Huber: gtsam.noiseModel.mEstimator.Huber,
             Cauchy: gtsam.noiseModel.mEstimator.Cauchy,

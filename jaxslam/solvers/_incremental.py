@@ -62,7 +62,7 @@ from ..lie import mm, mT
 from ._blocks import BlockInformation, NotPositiveDefinite, pairs
 from ._blocks import one_blas_thread as _one_blas_thread
 from ._nls import Solver, SolverConfig, SolverResult
-from ._problem import _check_factor
+from ._problem import _check_factor, check_shared_leaves
 
 try:  # pragma: no cover - import guard
     from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
@@ -205,6 +205,7 @@ class _Group:
         leaves, self.treedef = jax.tree_util.tree_flatten(f)
         self.batched = [jnp.ndim(leaf) >= 1 for leaf in leaves]
         self.shared = [None if b else leaf for leaf, b in zip(leaves, self.batched)]
+        self.first = f  # its scalar leaves are the group's (check_shared_leaves)
         self.n = 0
         cap = 16
         self.buffers = [
@@ -645,8 +646,12 @@ class IncrementalSolver:
         for h in remove:
             if h not in self._handles:
                 raise GraphError(f"no factor with handle {h} (already removed?)")
+        first: dict[Any, Factor] = {}  # per group key: the factor whose scalar leaves it keeps
         for k, f in enumerate(factors):
             _check_factor(f, k)
+            key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+            g = self.groups.get(key)
+            check_shared_leaves(g.first if g is not None else first.setdefault(key, f), f)
             for v in f.variables:
                 vt = type(v)
                 s = self.stores.get(vt)

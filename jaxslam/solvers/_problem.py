@@ -59,10 +59,32 @@ def _pad_leaf(leaf: Any, n: int, cap: int) -> Any:
     return jnp.concatenate([arr, reps], axis=0)
 
 
+def check_shared_leaves(group: Factor, f: Factor) -> None:
+    """Raise :class:`GraphError` when ``f``'s scalar leaves (shared by all its constraints: a
+    robust kernel's scale) differ from those of ``group``, a factor of the same kind it is
+    grouped with: the group keeps one value per scalar leaf, and the solver would otherwise
+    use the first factor's scale for all. Per-constraint scales are arrays of length N."""
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(group), jax.tree_util.tree_leaves(f)):
+        if (jnp.ndim(a) == 0) != (jnp.ndim(b) == 0):
+            raise GraphError(
+                f"{type(f).__name__}: field {jax.tree_util.keystr(path)} is a scalar in one factor and per-constraint "
+                "in another of the same kind; use one form for all"
+            )
+        concrete = not isinstance(a, jax.core.Tracer) and not isinstance(b, jax.core.Tracer)
+        if jnp.ndim(a) == 0 and concrete and float(a) != float(b):
+            raise GraphError(
+                f"{type(f).__name__}: factors of one kind share scalar field {jax.tree_util.keystr(path)}, "
+                f"but these differ ({float(a)!r} and {float(b)!r}); give it per constraint (an array of length N)"
+            )
+
+
 def concatenate_factors(factors: Sequence[Factor]) -> Factor:
-    """One factor holding the constraints of several factors of the same class."""
+    """One factor holding the constraints of several factors of the same class (their scalar
+    leaves must agree, :func:`check_shared_leaves`)."""
     if len(factors) == 1:
         return factors[0]
+    for f in factors[1:]:
+        check_shared_leaves(factors[0], f)
     return jax.tree_util.tree_map(
         lambda *leaves: leaves[0] if jnp.ndim(leaves[0]) == 0 else jnp.concatenate([jnp.asarray(x) for x in leaves]),
         *factors,

@@ -5,11 +5,12 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam.core import Gaussian, Huber, Point3Var, Pose2Var, Pose3Var, Values
+from jaxslam.core import Cauchy, Gaussian, Huber, Point3Var, Pose2Var, Pose3Var, Values
 from jaxslam.errors import GraphError, SolverError
 from jaxslam.factors import BetweenFactor, PriorFactor
 from jaxslam.lie import SE3
@@ -159,6 +160,37 @@ def test_robust_cost_matches_gtsam_and_rejects_outlier() -> None:
     res = s.solve(throw=True)
     ref = gtsam.LevenbergMarquardtOptimizer(gt_graph, gt_init, gtsam.LevenbergMarquardtParams()).optimize()
     assert gt_graph.error(values_to_gtsam(res.values)) <= gt_graph.error(ref) * (1 + 1e-6)
+
+
+def test_kernel_scales_per_constraint_match_gtsam_and_mixed_shared_scales_are_refused() -> None:
+    """Factors of one kind form one group, which keeps one value per scalar leaf: two
+    factors with different shared kernel scales would silently both get the first's, so that
+    is refused; a scale per constraint (an array) gives each its own, as GTSAM does."""
+    graph = read_g2o(DATA / "smallGrid3D.g2o")
+    between, prior = _anchored(graph)
+    n = between.num_constraints
+    measured = np.asarray(between.measured).copy()
+    measured[5, 4:] += 3.0  # an outlier, so that the kernels matter
+
+    def part(idx, robust):
+        sliced = jax.tree_util.tree_map(lambda leaf: leaf[idx] if np.ndim(leaf) >= 1 else leaf, between)
+        return dataclasses.replace(sliced, measured=jnp.asarray(measured[idx])).with_robust(robust)
+
+    a, b = np.arange(n) < n // 2, np.arange(n) >= n // 2
+    with pytest.raises(GraphError, match="differ"):
+        Solver([part(a, Cauchy(1.0)), part(b, Cauchy(10.0)), prior], graph.values)
+    with pytest.raises(GraphError, match="scalar in one factor"):
+        Solver([part(a, Cauchy(1.0)), part(b, Cauchy(np.full(int(b.sum()), 10.0))), prior], graph.values)
+    mixed = [part(a, Cauchy(np.full(int(a.sum()), 1.0))), part(b, Cauchy(np.full(int(b.sum()), 10.0))), prior]
+    gt_graph, gt_init = to_gtsam(mixed, graph.values)
+    s = Solver(mixed, graph.values)
+    assert abs(s.evaluate(graph.values) - gt_graph.error(gt_init)) <= 1e-9 * gt_graph.error(gt_init)
+    res = s.solve(throw=True)
+    assert abs(s.evaluate(res.values) - gt_graph.error(values_to_gtsam(res.values))) <= 1e-9 * s.evaluate(res.values)
+    # the same scale everywhere, shared or per constraint: the same cost
+    same = Solver([part(a, Cauchy(1.0)), part(b, Cauchy(1.0)), prior], graph.values)
+    per = Solver([part(a, Cauchy(np.ones(int(a.sum())))), part(b, Cauchy(np.ones(int(b.sum())))), prior], graph.values)
+    assert abs(same.evaluate(graph.values) - per.evaluate(graph.values)) <= 1e-12 * same.evaluate(graph.values)
 
 
 # --- linear solvers agree ------------------------------------------------------------------

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam.core import Gaussian, MarginalFactor, Point3Var, Pose3Var, Values
+from jaxslam.core import Cauchy, Gaussian, MarginalFactor, Point3Var, Pose3Var, Values
 from jaxslam.errors import ConfigError, GraphError
 from jaxslam.factors import BetweenFactor, PriorFactor
 from jaxslam.io import read_g2o
@@ -212,6 +212,32 @@ def test_bad_input_raises_graph_errors() -> None:
     with pytest.raises(GraphError, match="Point3Var 9"):
         solver.update([bad], Values.create({Point3Var(np.array([8])): np.zeros((1, 3))}))
     assert list(solver.estimate().ids(Point3Var)) == [0]
+
+
+def test_differing_shared_kernel_scales_are_refused_and_lose_nothing() -> None:
+    """A group keeps one value per scalar leaf: a later factor of the same kind with another
+    shared Cauchy scale would silently get the first one's. The update is refused before
+    anything changes; per-constraint scales (arrays) are accepted."""
+    solver = IncrementalSolver()
+    p = [Point3Var(np.array([i])) for i in range(3)]
+    vals = Values.create({p[0]: np.zeros((1, 3)), p[1]: np.ones((1, 3))})
+    prior = PriorFactor.create(p[0], np.zeros(3), Gaussian.isotropic(3, 1.0))
+
+    def between(a, b, robust):
+        return BetweenFactor.create(a, b, np.ones((1, 3)), Gaussian.isotropic(3, 0.1), robust=robust)
+
+    solver.update([prior, between(p[0], p[1], Cauchy(1.0))], vals)
+    with pytest.raises(GraphError, match="differ"):
+        solver.update([between(p[1], p[2], Cauchy(10.0))], Values.create({p[2]: np.ones((1, 3))}))
+    assert list(solver.estimate().ids(Point3Var)) == [0, 1]
+    with pytest.raises(GraphError, match="differ"):  # within one update, too
+        fresh = IncrementalSolver()
+        fresh.update([prior, between(p[0], p[1], Cauchy(1.0)), between(p[0], p[1], Cauchy(2.0))], vals)
+    per = IncrementalSolver()
+    per.update(
+        [prior, between(p[0], p[1], Cauchy(np.full(1, 1.0))), between(p[0], p[1], Cauchy(np.full(1, 10.0)))], vals
+    )
+    assert list(per.estimate().ids(Point3Var)) == [0, 1]
 
 
 def _linear_stream(n: int, seed: int = 3):
