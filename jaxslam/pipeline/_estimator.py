@@ -527,7 +527,9 @@ class Estimator:
         """The graph factor of an accepted loop (LiDAR or visual): its relative pose and
         information under a Cauchy kernel; the edge is recorded for the residual plots."""
         self.edges.append(("loop closure", loop.i, loop.j, loop.T, loop.information))
-        robust = Cauchy(self.cfg.loop.cauchy_scale)
+        cfg = self.cfg.loop
+        # per constraint (an array): LiDAR and visual loops share one factor group
+        robust = Cauchy(jnp.full(1, cfg.visual_cauchy_scale if isinstance(loop, VisualLoop) else cfg.cauchy_scale))
         return self._tag("loop", _between(loop.i, loop.j, loop.T, loop.information, robust=robust))
 
     def _collect_vision(self, keep: int = 0) -> list:

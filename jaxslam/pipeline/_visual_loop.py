@@ -20,15 +20,19 @@ by the estimate and photometric:
    plane (the plane fit that gave the feature its depth gives the normal), sampled in the old
    image and compared by NCC with the current one while the current camera slides along its
    direction of travel (``visual_shift_step`` steps, within three times the drift expected
-   since the old keyframe, clamped to ``visual_min_shift`` .. ``visual_max_shift``); both
+   since the old keyframe, clamped to ``visual_min_shift`` .. ``visual_max_shift``, plus
+   ``visual_alias_margin``: a drift just past three times the expected would put the true
+   peak at the range's edge, where it cannot show as a peak, and leave a periodic alias
+   inside to win unopposed); both
    images are undistorted (OpenCV ``remap``) and blurred by ``visual_blur_px`` so a few
    centimetres of lateral error do not hide the peak;
 3. hypotheses: up to ``visual_hypotheses`` local peaks of the mean (clipped) NCC over the
    shifts; each is refined by a direct alignment (Gauss-Newton on the patches' normalised
    grey values, translation only, blurred then sharp images, rotation held at the
-   prediction); the hypothesis with the most patches above ``visual_min_ncc`` wins;
-4. acceptance: at least ``visual_min_inliers`` such patches, no runner-up hypothesis with more
-   than ``visual_peak_ratio`` of the winner's (a periodic structure: tray rungs, brackets),
+   prediction); the one with the most patches above ``visual_min_ncc`` wins;
+4. acceptance: at least ``visual_min_inliers`` such patches, no runner-up hypothesis with
+   more than ``visual_peak_ratio`` of the winner's (a periodic structure: tray rungs,
+   brackets),
    a move across the track below ``visual_max_cross`` (the LiDAR pins lateral and vertical),
    an along-track sigma below ``visual_max_sigma``, and the same chi^2 consistency gate
    against the estimate as LiDAR loops.
@@ -113,6 +117,8 @@ class VisualLoopCloser:
         self.accepted: list[VisualLoop] = []
         self.rejected: list[tuple[int, int, str]] = []
         self.attempts = 0
+        self.last_hypotheses: list[tuple[int, float]] = []
+        """The last verification's aligned hypotheses: (patches aligned, shift in m), best first."""
 
     def due(self, k: int) -> bool:
         return k > 0 and self.cfg.enabled and self.cfg.visual and k % max(self.cfg.visual_every, 1) == 0
@@ -412,7 +418,8 @@ class VisualLoopCloser:
         cfg = self.cfg
         drift = max(cfg.visual_drift_per_m * travelled, 0.02)
         max_shift = min(max(3.0 * drift, cfg.visual_min_shift), cfg.visual_max_shift)
-        shifts, ncc, pts = self.along_track(fi, images, T_ki, max_shift)
+        reach = max_shift + cfg.visual_alias_margin  # competitors are looked for this far
+        shifts, ncc, pts = self.along_track(fi, images, T_ki, reach)
         a = self.T_cb[:3, :3] @ np.array([1.0, 0.0, 0.0])  # travel direction in camera k
         pts = np.sort(pts)
         tried: list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -428,17 +435,21 @@ class VisualLoopCloser:
                 use = pts[good]
                 good = ncc_pts > cfg.visual_min_ncc
             moved = float(-(T[:3, 3] - T_ki[:3, 3]) @ a)  # the shift it converged to
-            if abs(moved) <= max_shift and not any(abs(moved - m) < cfg.visual_shift_tol for _, m, *_ in tried):
+            if abs(moved) <= reach and not any(abs(moved - m) < cfg.visual_shift_tol for _, m, *_ in tried):
                 tried.append((int(good.sum()), moved, T, use, good, ncc_pts))
         tried.sort(key=lambda h: -h[0])
+        self.last_hypotheses = [(n, moved) for n, moved, *_ in tried]  # (patches aligned, shift m), best first
         if not tried or tried[0][0] < cfg.visual_min_inliers:
             n = tried[0][0] if tried else 0
             self.rejected.append((i, k, f"{n} patches align (of {ncc.shape[1]})"))
             return None
-        if len(tried) > 1 and tried[1][0] > cfg.visual_peak_ratio * tried[0][0]:
-            self.rejected.append((i, k, f"ambiguous: {tried[0][0]} and {tried[1][0]} patches align at two shifts"))
+        best = tried[0]
+        if len(tried) > 1 and tried[1][0] > cfg.visual_peak_ratio * best[0]:
+            self.rejected.append(
+                (i, k, f"ambiguous: {best[0]} and {tried[1][0]} patches align at {best[1]:+.2f}, {tried[1][1]:+.2f} m")
+            )
             return None
-        _, _, T, pts, good, ncc_pts = tried[0]
+        _, _, T, pts, good, ncc_pts = best
         # the prediction's lateral and vertical come from the LiDAR (the walls, floor, ceiling
         # pin them to a centimetre or two): an alignment that needed to move them far
         # compensated a rotation error (right after a turn on the spot) or matched the wrong

@@ -233,6 +233,7 @@ def test_wrong_types_raise(data):
         {"vision": {"detector": 5}},
         {"vision": {"scale_depth": "lidar"}},
         {"vision": {"length_sigma_ratio": -0.01}},
+        {"loop": {"visual_alias_margin": -0.1}},
         {"rig": {"lidar_model": None}},
         {"imu": {"noise_scale": True}},
         {"vision": {"max_keypoints": 10.5}},

@@ -137,6 +137,18 @@ def test_length_sigma_softens_only_where_the_lidar_is_anchored(records, config, 
     assert ape < baseline[2] + 0.05, (ape, baseline[2])
 
 
+def test_loop_factors_carry_their_kinds_kernel_scale(baseline, config) -> None:
+    """LiDAR and visual loops share one factor group, so each loop factor holds its Cauchy
+    scale per constraint: ``loop.cauchy_scale`` on LiDAR loops, ``loop.visual_cauchy_scale``
+    on visual ones (a scalar would give all of them the first loop's)."""
+    est = baseline[0]
+    scales = sorted(float(np.asarray(f.robust.k)[0]) for kind, f in est.graph if kind == "loop")
+    n_visual = len(est.visual_loops.accepted) if est.visual_loops else 0
+    assert len(scales) == len(est.loops.accepted) + n_visual > 0
+    lidar, visual = config.loop.cauchy_scale, config.loop.visual_cauchy_scale
+    assert scales == sorted([lidar] * len(est.loops.accepted) + [visual] * n_visual)
+
+
 def test_cli_run_shows_progress(bag, tmp_path, capsys) -> None:
     """``jaxslam run`` without ``-q``: the progress bar starts with an unknown total (it once
     crashed formatting None). Four seconds travel less than RPE's 1 m delta: the run still

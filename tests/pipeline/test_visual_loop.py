@@ -110,6 +110,43 @@ def test_refuses_a_lookalike_stretch_the_estimate_puts_here(scene):
     assert closer.rejected and closer.attempts == 1
 
 
+@pytest.mark.parametrize("error", [0.28, -0.29])
+def test_a_drift_at_the_range_edge_does_not_hand_the_loop_to_an_alias(scene, error):
+    """Over 20 m the expected drift gives the smallest search range, 0.3 m; a prediction wrong
+    by nearly that much puts the true peak at the range's edge, where it cannot show as a
+    peak, and an alias of the cable-tray rungs (0.3 m apart) inside it. The search reaches
+    ``visual_alias_margin`` further, so the true peak is found and wins; with no margin the
+    same scene hands the loop to the alias (the trap is real)."""
+    rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
+    wrong = T_cur @ host.make_pose(np.eye(3), np.array([error, 0.0, 0.0]))
+    T_true = host.inverse(T_old) @ T_cur
+    along = {}
+    for margin in (0.0, LoopConfig().visual_alias_margin):
+        closer = _closer(rig, visual_alias_margin=margin)
+        loops = closer.detect(_query(T_old, wrong, travelled=20.0), img_cur, {0: f_old}, {0: img_old})
+        assert len(loops) == 1, closer.rejected
+        along[margin] = abs(host.se3_log(host.inverse(loops[0].T) @ T_true)[3])
+    assert along[LoopConfig().visual_alias_margin] < 0.02
+    assert along[0.0] > 0.2
+
+
+@pytest.mark.parametrize("error", [0.33, -0.5])
+def test_a_drift_past_the_range_is_measured_or_refused_never_faked(scene, error):
+    """The prediction is wrong by more than the 0.3 m range. Within ``visual_alias_margin``
+    past it the true peak is still found and beats the rung aliases inside; farther out the
+    consistency gate refuses the loop. Either way no alias is taken."""
+    rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
+    wrong = T_cur @ host.make_pose(np.eye(3), np.array([error, 0.0, 0.0]))
+    closer = _closer(rig)
+    loops = closer.detect(_query(T_old, wrong, travelled=20.0), img_cur, {0: f_old}, {0: img_old})
+    if abs(error) < 0.3 + LoopConfig().visual_alias_margin:
+        assert len(loops) == 1, closer.rejected
+        e = host.se3_log(host.inverse(loops[0].T) @ (host.inverse(T_old) @ T_cur))
+        assert abs(e[3]) < 0.02
+    else:
+        assert loops == [] and "inconsistent with odometry" in closer.rejected[0][2]
+
+
 def test_not_due_without_vision_loops_or_at_the_first_keyframe(scene):
     rig = scene[0]
     assert not _closer(rig).due(0)
