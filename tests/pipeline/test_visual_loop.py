@@ -130,21 +130,20 @@ def test_a_drift_at_the_range_edge_does_not_hand_the_loop_to_an_alias(scene, err
     assert along[0.0] > 0.2
 
 
-@pytest.mark.parametrize("error", [0.33, -0.5])
+@pytest.mark.parametrize("error", [0.33, -0.5, 0.7])
 def test_a_drift_past_the_range_is_measured_or_refused_never_faked(scene, error):
-    """The prediction is wrong by more than the 0.3 m range. Within ``visual_alias_margin``
-    past it the true peak is still found and beats the rung aliases inside; farther out the
-    consistency gate refuses the loop. Either way no alias is taken."""
+    """The prediction is wrong by more than the 0.3 m range. Just past it (0.33 m, within
+    ``visual_alias_margin``) the true peak is still found, beats the rung aliases inside and
+    passes the consistency gate (drift sigma 0.1 m here); at 0.5 m the gate refuses it; at
+    0.7 m, beyond the search, only aliases align and they tie. No alias is ever taken."""
     rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
     wrong = T_cur @ host.make_pose(np.eye(3), np.array([error, 0.0, 0.0]))
     closer = _closer(rig)
     loops = closer.detect(_query(T_old, wrong, travelled=20.0), img_cur, {0: f_old}, {0: img_old})
-    if abs(error) < 0.3 + LoopConfig().visual_alias_margin:
-        assert len(loops) == 1, closer.rejected
-        e = host.se3_log(host.inverse(loops[0].T) @ (host.inverse(T_old) @ T_cur))
+    assert len(loops) == (1 if abs(error) < 0.4 else 0), closer.rejected
+    for lp in loops:
+        e = host.se3_log(host.inverse(lp.T) @ (host.inverse(T_old) @ T_cur))
         assert abs(e[3]) < 0.02
-    else:
-        assert loops == [] and "inconsistent with odometry" in closer.rejected[0][2]
 
 
 def test_not_due_without_vision_loops_or_at_the_first_keyframe(scene):
