@@ -284,8 +284,8 @@ class LoopConfig:
     """Only points at this range from the current camera (m, along its axis) are searched."""
     visual_drift_per_m: float = 0.005
     """Along-track drift expected per metre travelled since the old keyframe: three times it
-    is the search range, and it is the visual loops' consistency gate (as ``drift_per_m``
-    for LiDAR loops)."""
+    (clamped below, plus ``visual_alias_margin``) is the search range, and it is the visual
+    loops' consistency gate (as ``drift_per_m`` for LiDAR loops)."""
     visual_min_shift: float = 0.3
     visual_max_shift: float = 1.0
     """Bounds of the search range along the direction of travel (m)."""
