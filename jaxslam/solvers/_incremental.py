@@ -62,7 +62,7 @@ from ..lie import mm, mT
 from ._blocks import BlockInformation, NotPositiveDefinite, pairs
 from ._blocks import one_blas_thread as _one_blas_thread
 from ._nls import Solver, SolverConfig, SolverResult
-from ._problem import _check_factor, check_shared_leaves
+from ._problem import _check_factor, check_shared_leaves, group_key, shared_leaves
 
 try:  # pragma: no cover - import guard
     from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
@@ -204,8 +204,7 @@ class _Group:
         self.T = int(self.col0[-1])
         leaves, self.treedef = jax.tree_util.tree_flatten(f)
         self.batched = [jnp.ndim(leaf) >= 1 for leaf in leaves]
-        self.shared = [None if b else leaf for leaf, b in zip(leaves, self.batched)]
-        self.first = f  # its scalar leaves are the group's (check_shared_leaves)
+        self.shared = shared_leaves(f)
         self.n = 0
         cap = 16
         self.buffers = [
@@ -465,7 +464,7 @@ class IncrementalSolver:
                 )
             rows.append(r)
             slots.append(s.index)
-        key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+        key = group_key(f)
         g = self.groups.get(key)
         if g is None:
             g = _Group(f, tuple(slots))
@@ -646,12 +645,12 @@ class IncrementalSolver:
         for h in remove:
             if h not in self._handles:
                 raise GraphError(f"no factor with handle {h} (already removed?)")
-        first: dict[Any, Factor] = {}  # per group key: the factor whose scalar leaves it keeps
+        shared: dict[Any, list[Any]] = {}  # per group key: the shared leaves the group keeps
         for k, f in enumerate(factors):
             _check_factor(f, k)
-            key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+            key = group_key(f)
             g = self.groups.get(key)
-            check_shared_leaves(g.first if g is not None else first.setdefault(key, f), f)
+            check_shared_leaves(g.shared if g is not None else shared.setdefault(key, shared_leaves(f)), f)
             for v in f.variables:
                 vt = type(v)
                 s = self.stores.get(vt)
@@ -1191,6 +1190,6 @@ class IncrementalSolver:
             x0 = tuple(self._store_list[si].x[r] for si, r in sep)
             mf = MarginalFactor.from_information(variables, x0, Hp, bp)
             self._add_factor(mf, 0)
-            g = self.groups[(type(mf), mf.variable_types(), mf.residual_dim, jax.tree_util.tree_structure(mf))]
+            g = self.groups[group_key(mf)]
             self._relinearize(self._group_list.index(g), np.asarray([g.n - 1]))
         return len(is_victim)

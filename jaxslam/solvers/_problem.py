@@ -59,19 +59,30 @@ def _pad_leaf(leaf: Any, n: int, cap: int) -> Any:
     return jnp.concatenate([arr, reps], axis=0)
 
 
-def check_shared_leaves(group: Factor, f: Factor) -> None:
-    """Raise :class:`GraphError` when ``f``'s scalar leaves (shared by all its constraints: a
-    robust kernel's scale) differ from those of ``group``, a factor of the same kind it is
-    grouped with: the group keeps one value per scalar leaf, and the solver would otherwise
-    use the first factor's scale for all. Per-constraint scales are arrays of length N."""
-    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(group), jax.tree_util.tree_leaves(f)):
-        if (jnp.ndim(a) == 0) != (jnp.ndim(b) == 0):
+def group_key(f: Factor) -> tuple[Any, ...]:
+    """What puts factors in one group: class, variable types, residual size, PyTree shape."""
+    return (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+
+
+def shared_leaves(f: Factor) -> list[Any]:
+    """``f``'s leaves shared by all its constraints (scalars: a robust kernel's scale), None
+    in place of per-constraint ones; a group keeps these of its first factor."""
+    return [None if jnp.ndim(leaf) >= 1 else leaf for leaf in jax.tree_util.tree_leaves(f)]
+
+
+def check_shared_leaves(shared: list[Any], f: Factor) -> None:
+    """Raise :class:`GraphError` when ``f``'s shared leaves differ from ``shared`` (those of
+    the group it joins, :func:`shared_leaves`): the group keeps one value per scalar leaf,
+    and the solver would otherwise use the first factor's scale for all. Per-constraint
+    scales are arrays of length N."""
+    for a, (path, b) in zip(shared, jax.tree_util.tree_leaves_with_path(f)):
+        if (a is None) != (jnp.ndim(b) >= 1):
             raise GraphError(
                 f"{type(f).__name__}: field {jax.tree_util.keystr(path)} is a scalar in one factor and per-constraint "
                 "in another of the same kind; use one form for all"
             )
         concrete = not isinstance(a, jax.core.Tracer) and not isinstance(b, jax.core.Tracer)
-        if jnp.ndim(a) == 0 and concrete and float(a) != float(b):
+        if a is not None and concrete and float(a) != float(b):
             raise GraphError(
                 f"{type(f).__name__}: factors of one kind share scalar field {jax.tree_util.keystr(path)}, "
                 f"but these differ ({float(a)!r} and {float(b)!r}); give it per constraint (an array of length N)"
@@ -83,8 +94,9 @@ def concatenate_factors(factors: Sequence[Factor]) -> Factor:
     leaves must agree, :func:`check_shared_leaves`)."""
     if len(factors) == 1:
         return factors[0]
+    shared = shared_leaves(factors[0])
     for f in factors[1:]:
-        check_shared_leaves(factors[0], f)
+        check_shared_leaves(shared, f)
     return jax.tree_util.tree_map(
         lambda *leaves: leaves[0] if jnp.ndim(leaves[0]) == 0 else jnp.concatenate([jnp.asarray(x) for x in leaves]),
         *factors,
@@ -211,7 +223,7 @@ class Problem:
             for v in f.variables:
                 if type(v) not in self.var_ids:
                     raise GraphError(f"{type(f).__name__} (factor {i}) uses {type(v).__name__}, which has no values")
-            key = (type(f), f.variable_types(), f.residual_dim, jax.tree_util.tree_structure(f))
+            key = group_key(f)
             by_type.setdefault(key, []).append(f)
         if not by_type:
             raise GraphError("the graph has no factors")
