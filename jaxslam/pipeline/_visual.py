@@ -166,6 +166,8 @@ class VisualFrontend:
         self.T_bc = host.params_to_matrix(np.asarray(rig.body_T_camera))
         self.T_cb = host.inverse(self.T_bc)
         self._next_track = 0
+        self.wide_fits = 0
+        """Relative poses fitted at ``vision.wide_inlier_px`` (the 2 px fit had failed)."""
 
     def features(
         self,
@@ -238,6 +240,7 @@ class VisualFrontend:
                 if np.all(np.isfinite(u)) and np.linalg.norm(u) > 1e-9:
                     return DirectionMeasurement(a.kf, b.kf, R.T, u / np.linalg.norm(u), len(ia))
         n_pairs = len(pairs)
+        pixel_sigma = cfg.pixel_sigma
         if fit is None and cfg.guided_radius_px > 0:
             # too few global matches (dark, noisy keypoints; a turn on the spot): match again
             # where the predicted motion puts a's 3-D points, then the same robust fit
@@ -246,6 +249,14 @@ class VisualFrontend:
                 ia, ib = gp[:, 0], gp[:, 1]
                 fit = motion_only(a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers)
                 n_pairs = len(gp)
+                if fit is None and cfg.wide_inlier_px > 2.0:
+                    # dark, motion-blurred keypoints scatter past 2 px: a wider gate, and a
+                    # pixel sigma widened by as much so the pose weighs less
+                    fit = motion_only(
+                        a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers, inlier_px=cfg.wide_inlier_px
+                    )
+                    pixel_sigma *= cfg.wide_inlier_px / 2.0
+                    self.wide_fits += fit is not None
         if fit is None:
             return None
         T_cbca, keep, e = fit
@@ -258,7 +269,7 @@ class VisualFrontend:
                 scaled = self._scale_from_depth(T_cbca, X, b.X[ib])
             T_cbca = scaled if scaled is not None else T_cbca
         J = _projection_jacobian(host.transform_points(T_cbca, X))
-        sigma = cfg.pixel_sigma / self.f
+        sigma = pixel_sigma / self.f
         H = np.einsum("nki,nkj->ij", J, J) / sigma**2 * cfg.information_scale
         # left perturbation of T_cb<-ca == (minus) right perturbation of T_ca<-cb; to the body:
         A = host.adjoint(self.T_cb)  # xi_cam = Ad(T_cb) xi_body
@@ -356,15 +367,22 @@ def with_length_sigma(info: np.ndarray, t: np.ndarray, ratio: float) -> np.ndarr
 
 
 def motion_only(
-    X: np.ndarray, x: np.ndarray, T_ba: np.ndarray, f: float, min_inliers: int, iterations: int = 12
+    X: np.ndarray,
+    x: np.ndarray,
+    T_ba: np.ndarray,
+    f: float,
+    min_inliers: int,
+    iterations: int = 12,
+    inlier_px: float = 2.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Motion-only Gauss-Newton (Huber, 2 px) of camera b's pose: points ``X`` (N, 3) in camera
-    a, their normalised observations ``x`` (N, 2) in camera b, ``T_ba`` (b <- a) the start.
-    Gross outliers (3 px) are dropped once the pose has settled; returns ``(T_ba, kept, e)``,
-    the indices of the final inliers (2 px) and their errors (normalised units), or None when
-    fewer than ``min_inliers`` remain or the system is singular."""
+    """Motion-only Gauss-Newton (Huber at ``inlier_px``) of camera b's pose: points ``X``
+    (N, 3) in camera a, their normalised observations ``x`` (N, 2) in camera b, ``T_ba``
+    (b <- a) the start. Gross outliers (1.5 ``inlier_px``) are dropped once the pose has
+    settled; returns ``(T_ba, kept, e)``, the indices of the final inliers (``inlier_px``) and
+    their errors (normalised units), or None when fewer than ``min_inliers`` remain or the
+    system is singular."""
     idx = np.arange(len(X))
-    delta = 2.0 / f  # Huber threshold: 2 px
+    delta = inlier_px / f  # Huber threshold
     T = T_ba
     for it in range(iterations):
         Xc = host.transform_points(T, X)
@@ -386,13 +404,13 @@ def motion_only(
         if it == 5:  # drop gross outliers once the pose has settled
             Xc = host.transform_points(T, X)
             e = np.linalg.norm(Xc[:, :2] / Xc[:, 2:3] - x, axis=1)
-            inl = e < 3.0 / f
+            inl = e < 1.5 * delta
             if inl.sum() < min_inliers:
                 return None
             X, x, idx = X[inl], x[inl], idx[inl]
     Xc = host.transform_points(T, X)
     e = np.linalg.norm(Xc[:, :2] / np.where(Xc[:, 2:3] > 0.1, Xc[:, 2:3], np.nan) - x, axis=1)
-    inl = e < 2.0 / f
+    inl = e < delta
     if inl.sum() < min_inliers:
         return None
     return T, idx[inl], e[inl]

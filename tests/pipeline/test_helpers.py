@@ -665,6 +665,84 @@ def test_guided_matching_registers_a_repetitive_pair_only_near_the_prediction():
     assert on.relative(a, b, far) is None
 
 
+def test_motion_only_gate_follows_the_inlier_threshold():
+    """``motion_only``: observations with 1.5 px Gaussian noise keep about
+    ``1 - exp(-r^2 / 2 sigma^2)`` of the points within the gate ``r`` (2-D Rayleigh): ~59 % at
+    2 px, ~93 % at 3.5 px (binomial bounds), and the pose error is within the noise's
+    information (chi-square) either way."""
+    from jaxslam.pipeline._visual import _projection_jacobian, motion_only
+
+    rng = np.random.default_rng(11)
+    f, n, sigma = 400.0, 400, 1.5
+    X = _tunnel_wall_points(rng, n)
+    T_ba = host.make_pose(host.so3_exp(np.radians([0.5, 8.0, 0.2])), np.array([0.01, 0.0, -0.25]))
+    Xb = host.transform_points(T_ba, X)
+    x = Xb[:, :2] / Xb[:, 2:] + sigma / f * rng.standard_normal((n, 2))
+    start = T_ba @ host.se3_exp(np.r_[np.radians([0.2, -0.3, 0.1]), 0.02, 0.01, 0.03])
+    for px in (2.0, 3.5):
+        fit = motion_only(X, x, start, f, 15, inlier_px=px)
+        assert fit is not None
+        T, kept, e = fit
+        p = 1 - np.exp(-(px**2) / (2 * sigma**2))
+        assert abs(len(kept) - n * p) < 4 * np.sqrt(n * p * (1 - p)), (px, len(kept), n * p)
+        assert np.all(e < px / f)
+        # the pose error, whitened by the noise's information over the kept points: chi^2(6)
+        J = _projection_jacobian(host.transform_points(T, X[kept]))
+        H = np.einsum("nki,nkj->ij", J, J) / (sigma / f) ** 2
+        err = host.se3_log(T_ba @ host.inverse(T))  # left perturbation, as the Jacobian's
+        assert err @ H @ err < 22.5, (px, err @ H @ err)  # 99.9 % of chi^2(6)
+
+
+def _noisy_sparse_pair(fe, rng, n=30, sigma_px=2.0):
+    """Two keyframes 0.25 m apart with ``n`` distinct features whose pixels in b scatter by
+    ``sigma_px`` (dark, motion-blurred keypoints) and a descriptor in a's set of 5 look-alikes
+    (the image-wide ratio test rejects them; the guided window holds one)."""
+    from jaxslam.pipeline._visual import KeyframeFeatures
+
+    Xa = _tunnel_wall_points(rng, n)
+    step = np.array([0.02, -0.01, 0.25])
+    Xb = Xa - step
+    base = rng.standard_normal((n // 5, 64)).astype(np.float32)
+
+    def feats(kf, X, noise):
+        xn = X[:, :2] / X[:, 2:] + noise
+        uv = xn * fe.K[0, 0] + fe.K[:2, 2]
+        desc = base[np.arange(n) % len(base)] + 0.01 * rng.standard_normal((n, 64)).astype(np.float32)
+        return KeyframeFeatures(kf, float(kf), uv, xn, desc, np.ones(n), X.copy(), np.arange(n) + kf * n)
+
+    T_cacb = np.eye(4)
+    T_cacb[:3, 3] = step
+    a = feats(0, Xa, np.zeros((n, 2)))
+    b = feats(1, Xb, sigma_px / fe.K[0, 0] * rng.standard_normal((n, 2)))
+    return a, b, fe.T_bc @ T_cacb @ fe.T_cb
+
+
+def test_wide_gate_registers_scattered_keypoints_with_a_wider_sigma():
+    """``vision.wide_inlier_px``: 30 guided pairs whose keypoints scatter by 2 px leave fewer
+    than ``min_inliers`` within 2 px, so the pair was lost; the wide gate (3.5 px) registers it,
+    counts it, and states its information for a pixel sigma 3.5 / 2 times wider (closed form
+    over its inliers), under which its true error is a plausible chi-square. Off (2), the pair
+    is lost."""
+    from jaxslam.pipeline._visual import VisualFrontend, _projection_jacobian
+
+    cfg = PipelineConfig()
+    assert cfg.vision.wide_inlier_px > 2.0
+    wide = VisualFrontend(cfg.vision, cfg.rig)
+    off = VisualFrontend(dataclasses.replace(cfg.vision, wide_inlier_px=2.0), cfg.rig)
+    a, b, T_ab = _noisy_sparse_pair(wide, np.random.default_rng(4))
+    assert off.relative(a, b, T_ab) is None and off.wide_fits == 0
+    vm = wide.relative(a, b, T_ab)
+    assert vm is not None and wide.wide_fits == 1 and vm.inliers >= cfg.vision.min_inliers
+    err = host.se3_log(host.inverse(vm.T) @ T_ab)  # the between factor's residual
+    assert err @ vm.information @ err < 22.5, err @ vm.information @ err  # the stated sigma holds
+    T_cbca = wide.T_cb @ host.inverse(vm.T) @ wide.T_bc
+    J = _projection_jacobian(host.transform_points(T_cbca, vm.X_i))
+    sigma = cfg.vision.pixel_sigma * cfg.vision.wide_inlier_px / 2.0 / wide.f
+    H = np.einsum("nki,nkj->ij", J, J) / sigma**2 * cfg.vision.information_scale
+    A = host.adjoint(wide.T_cb)
+    np.testing.assert_allclose(vm.information, A.T @ H @ A, rtol=1e-9, atol=1e-6)
+
+
 def test_zero_velocity_detector_takes_noise_only_intervals():
     """``ImuConfig.zupt``: an interval whose accelerometer spread is the sensor's white noise
     counts as standing still (whatever the gyro says: a turn on the spot keeps the IMU in place);
