@@ -439,6 +439,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
             v = float(v)
             if k == "length_sigma_ratio" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a relative sigma >= 0 (0 = off), got {v!r}")
+            if k == "wide_inlier_px" and not np.isfinite(v):
+                raise ConfigError(f"{where}.{k}: expected a threshold in pixels (2 or less = off), got {v!r}")
             if k == "visual_alias_margin" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a distance >= 0 (m), got {v!r}")
         elif isinstance(default, str):

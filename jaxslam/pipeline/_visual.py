@@ -23,6 +23,9 @@ from ..lie import host
 from ..vision import aba_clahe, detect_and_describe, find_essential, match_descriptors
 from ._config import RigConfig, VisionConfig
 
+INLIER_PX = 2.0
+"""The motion-only fit's inlier threshold (px); ``vision.wide_inlier_px`` widens it."""
+
 
 def undistort_normalized(uv: np.ndarray, K: np.ndarray, dist: tuple[float, ...], iters: int = 20) -> np.ndarray:
     """Normalised undistorted coordinates (N, 2) of distorted pixels (N, 2) (radtan, inverted
@@ -249,14 +252,15 @@ class VisualFrontend:
                 ia, ib = gp[:, 0], gp[:, 1]
                 fit = motion_only(a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers)
                 n_pairs = len(gp)
-                if fit is None and cfg.wide_inlier_px > 2.0:
-                    # dark, motion-blurred keypoints scatter past 2 px: a wider gate, and a
+                if fit is None and cfg.wide_inlier_px > INLIER_PX:
+                    # dark, motion-blurred keypoints scatter past the gate: a wider one, and a
                     # pixel sigma widened by as much so the pose weighs less
                     fit = motion_only(
                         a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers, inlier_px=cfg.wide_inlier_px
                     )
-                    pixel_sigma *= cfg.wide_inlier_px / 2.0
-                    self.wide_fits += fit is not None
+                    if fit is not None:
+                        pixel_sigma *= cfg.wide_inlier_px / INLIER_PX
+                        self.wide_fits += 1
         if fit is None:
             return None
         T_cbca, keep, e = fit
@@ -373,7 +377,7 @@ def motion_only(
     f: float,
     min_inliers: int,
     iterations: int = 12,
-    inlier_px: float = 2.0,
+    inlier_px: float = INLIER_PX,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Motion-only Gauss-Newton (Huber at ``inlier_px``) of camera b's pose: points ``X``
     (N, 3) in camera a, their normalised observations ``x`` (N, 2) in camera b, ``T_ba``

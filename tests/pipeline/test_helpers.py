@@ -234,6 +234,7 @@ def test_wrong_types_raise(data):
         {"vision": {"scale_depth": "lidar"}},
         {"vision": {"length_sigma_ratio": -0.01}},
         {"loop": {"visual_alias_margin": -0.1}},
+        {"vision": {"wide_inlier_px": float("nan")}},
         {"rig": {"lidar_model": None}},
         {"imu": {"noise_scale": True}},
         {"vision": {"max_keypoints": 10.5}},
