@@ -119,6 +119,7 @@ def main() -> None:
                             "lidar_scans",
                             "loops_accepted",
                             "visual_loops_accepted",
+                            "visual_loops_blurred",
                             "loops_rejected",
                             "loops_false",
                             "keyframes",

@@ -300,11 +300,18 @@ class LoopConfig:
     """Side of the square patch (samples) laid on a point's LiDAR plane and compared by NCC."""
     visual_shift_step: float = 0.02
     """Step of the search along the direction of travel (m)."""
-    visual_min_contrast: float = 4.0
-    """Patches flatter than this grey-level standard deviation are not searched."""
+    visual_min_contrast: float = 1.0
+    """Patches flatter than this grey-level standard deviation (on the search's blurred
+    images) are not searched; the ``visual_max_points`` most contrasted are. Was 4: in the
+    darkest stretches (mean grey level 3-7) no patch reached it."""
     visual_max_points: int = 150
     """Search at most this many points per candidate (the most contrasted)."""
     visual_blur_px: float = 2.0
+    visual_dim_blur_px: float = 1.0
+    """When no hypothesis aligns ``visual_min_inliers`` patches on the sharp images, align
+    them again on images blurred by this much (Gaussian, px; 0 = off). In a dark stretch
+    (mean grey level ~4 at full gain) the sensor noise caps a true patch's NCC on sharp
+    images well below ``visual_min_ncc``; a 1 px blur lifts it (see README)."""
     visual_search_spacing_px: float = 3.0
     """The search along the track compares blurred images (Gaussian, px) with patches spaced
     this far apart (px in the old image): coarse, so that the prediction's error across the
@@ -443,6 +450,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a threshold in pixels (2 or less = off), got {v!r}")
             if k == "visual_alias_margin" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a distance >= 0 (m), got {v!r}")
+            if k in ("visual_dim_blur_px", "visual_blur_px") and not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"{where}.{k}: expected a blur >= 0 (px, 0 = none), got {v!r}")
         elif isinstance(default, str):
             if not isinstance(v, str):
                 raise ConfigError(f"{where}.{k}: expected a string, got {v!r}")

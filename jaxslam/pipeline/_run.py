@@ -203,6 +203,7 @@ def run_recording(
         "loops_rejected": (len(est.loops.rejected) if est.loops else 0)
         + (len(est.visual_loops.rejected) if est.visual_loops else 0),
         "visual_loops_accepted": len(est.visual_loops.accepted) if est.visual_loops else 0,
+        "visual_loops_blurred": sum(lp.blur_px > 0 for lp in est.visual_loops.accepted) if est.visual_loops else 0,
         "visual_loops_attempted": est.visual_loops.attempts if est.visual_loops else 0,
         "visual_scale": est._vo_scale,
         "zero_velocity_updates": est.zupt_count,

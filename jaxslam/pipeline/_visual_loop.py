@@ -29,7 +29,10 @@ by the estimate and photometric:
 3. hypotheses: up to ``visual_hypotheses`` local peaks of the mean (clipped) NCC over the
    shifts; each is refined by a direct alignment (Gauss-Newton on the patches' normalised
    grey values, translation only, blurred then sharp images, rotation held at the
-   prediction); the one with the most patches above ``visual_min_ncc`` wins;
+   prediction); the one with the most patches above ``visual_min_ncc`` wins. When none
+   aligns ``visual_min_inliers`` patches on the sharp images (a dark stretch, where the
+   sensor noise caps a true patch's NCC), all are aligned again on images blurred by
+   ``visual_dim_blur_px``;
 4. acceptance: at least ``visual_min_inliers`` such patches, no runner-up hypothesis with
    more than ``visual_peak_ratio`` of the winner's (a periodic structure: tray rungs,
    brackets),
@@ -74,6 +77,8 @@ class VisualLoop:
     ncc: float
     """Mean NCC of the aligned patches."""
     mahalanobis2: float
+    blur_px: float = 0.0
+    """Blur of the images its patches were aligned on (0: sharp; ``visual_dim_blur_px``)."""
 
 
 @dataclasses.dataclass
@@ -405,6 +410,41 @@ class VisualLoopCloser:
         ncc_out[np.searchsorted(pts, kept)] = np.where(np.isfinite(ncc), ncc, -1.0)
         return T, ncc_out
 
+    def _align_hypotheses(
+        self,
+        fi: KeyframeFeatures,
+        pts: np.ndarray,
+        images: tuple[np.ndarray, np.ndarray],
+        T_ki: np.ndarray,
+        hyps: list[float],
+        reach: float,
+        blur: float,
+    ) -> list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Each shift hypothesis aligned (blurred search images, then images blurred by
+        ``blur`` px, then again on the patches that passed), as ``(patches above
+        visual_min_ncc, shift converged to, T, patches used, which passed, their NCC)``, the
+        most patches first; hypotheses converging beyond ``reach`` or onto an earlier one
+        are dropped."""
+        cfg = self.cfg
+        a = self.T_cb[:3, :3] @ np.array([1.0, 0.0, 0.0])  # travel direction in camera k
+        tried: list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        for shift in hyps:
+            step = np.eye(4)
+            step[:3, 3] = -shift * a
+            T, ncc_pts = self.align(fi, pts, images, step @ T_ki, cfg.visual_blur_px)
+            T, ncc_pts = self.align(fi, pts, images, T, blur)
+            use = pts
+            good = ncc_pts > cfg.visual_min_ncc
+            if good.sum() >= cfg.visual_min_inliers and not good.all():
+                T, ncc_pts = self.align(fi, pts[good], images, T, blur)
+                use = pts[good]
+                good = ncc_pts > cfg.visual_min_ncc
+            moved = float(-(T[:3, 3] - T_ki[:3, 3]) @ a)  # the shift it converged to
+            if abs(moved) <= reach and not any(abs(moved - m) < cfg.visual_shift_tol for _, m, *_ in tried):
+                tried.append((int(good.sum()), moved, T, use, good, ncc_pts))
+        tried.sort(key=lambda h: -h[0])
+        return tried
+
     def _verify(
         self,
         i: int,
@@ -422,22 +462,15 @@ class VisualLoopCloser:
         shifts, ncc, pts = self.along_track(fi, images, T_ki, reach)
         a = self.T_cb[:3, :3] @ np.array([1.0, 0.0, 0.0])  # travel direction in camera k
         pts = np.sort(pts)
-        tried: list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        for shift in self.hypotheses(shifts, ncc):
-            step = np.eye(4)
-            step[:3, 3] = -shift * a
-            T, ncc_pts = self.align(fi, pts, images, step @ T_ki, cfg.visual_blur_px)
-            T, ncc_pts = self.align(fi, pts, images, T, 0.0)
-            use = pts
-            good = ncc_pts > cfg.visual_min_ncc
-            if good.sum() >= cfg.visual_min_inliers and not good.all():
-                T, ncc_pts = self.align(fi, pts[good], images, T, 0.0)
-                use = pts[good]
-                good = ncc_pts > cfg.visual_min_ncc
-            moved = float(-(T[:3, 3] - T_ki[:3, 3]) @ a)  # the shift it converged to
-            if abs(moved) <= reach and not any(abs(moved - m) < cfg.visual_shift_tol for _, m, *_ in tried):
-                tried.append((int(good.sum()), moved, T, use, good, ncc_pts))
-        tried.sort(key=lambda h: -h[0])
+        hyps = self.hypotheses(shifts, ncc)
+        tried = self._align_hypotheses(fi, pts, images, T_ki, hyps, reach, 0.0)
+        blur = 0.0
+        if (not tried or tried[0][0] < cfg.visual_min_inliers) and cfg.visual_dim_blur_px > 0 and hyps:
+            # too few patches align on the sharp images: in a dark stretch the sensor noise
+            # (a few grey levels at full gain) caps a true patch's NCC well below the
+            # threshold, so the alignment is tried again on slightly blurred images
+            blur = cfg.visual_dim_blur_px
+            tried = self._align_hypotheses(fi, pts, images, T_ki, hyps, reach, blur)
         self.last_hypotheses = [(n, moved) for n, moved, *_ in tried]  # (patches aligned, shift m), best first
         if not tried or tried[0][0] < cfg.visual_min_inliers:
             n = tried[0][0] if tried else 0
@@ -491,7 +524,7 @@ class VisualLoopCloser:
         if not ok:
             self.rejected.append((i, k, f"inconsistent with odometry (chi2 {m2:.1f})"))
             return None
-        loop = VisualLoop(i, k, T_ik, info, len(keep), ncc.shape[1], float(np.mean(ncc_pts[good])), m2)
+        loop = VisualLoop(i, k, T_ik, info, len(keep), ncc.shape[1], float(np.mean(ncc_pts[good])), m2, blur)
         self.accepted.append(loop)
         return loop
 
