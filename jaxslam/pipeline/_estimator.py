@@ -84,6 +84,18 @@ def _se3(T: np.ndarray) -> SE3:
     return SE3(jnp.asarray(host.matrix_to_params(T)))
 
 
+_FREE_ROTATION_INFO = 1e-6
+"""Information on the rotation of a position-hold factor: ~1000 rad sigma, i.e. none."""
+
+
+def position_hold(i: int, j: int, sigma: float) -> BetweenFactor:
+    """Keyframes ``i`` and ``j`` at the same place, turned any way (``ImuConfig.zupt_hold_sigma``):
+    a between factor with the identity measured, ``sigma`` (m) on each translation axis and
+    no information to speak of on the rotation."""
+    info = np.diag(np.r_[np.full(3, _FREE_ROTATION_INFO), np.full(3, sigma**-2.0)])
+    return _between(i, j, np.eye(4), info)
+
+
 def _between(i: int, j: int, T: np.ndarray, info: np.ndarray, robust=None) -> BetweenFactor:
     return BetweenFactor.create(
         Pose3Var(np.array([i])),
@@ -380,6 +392,9 @@ class Estimator:
                 zero = PriorFactor.create(VelocityVar(ids[1]), np.zeros((1, 3)), Gaussian.isotropic(3, sigma))
                 factors.append(self._tag("zupt", zero))
                 self.zupt_count += 1
+                hold = self.cfg.imu.zupt_hold_sigma
+                if hold > 0:
+                    factors.append(self._tag("zupt", position_hold(k - 1, k, hold)))
             values = {
                 Pose3Var(ids[1]): _se3(pred.T[None]),
                 VelocityVar(ids[1]): pred.v[None],

@@ -169,6 +169,8 @@ class VisualFrontend:
         self.T_bc = host.params_to_matrix(np.asarray(rig.body_T_camera))
         self.T_cb = host.inverse(self.T_bc)
         self._next_track = 0
+        self.guided_fits = 0
+        """Relative poses fitted on guided pairs at 2 px (``vision.guided_information_scale``)."""
         self.wide_fits = 0
         """Relative poses fitted at ``vision.wide_inlier_px`` (the 2 px fit had failed)."""
 
@@ -244,6 +246,7 @@ class VisualFrontend:
                     return DirectionMeasurement(a.kf, b.kf, R.T, u / np.linalg.norm(u), len(ia))
         n_pairs = len(pairs)
         pixel_sigma = cfg.pixel_sigma
+        info_scale = cfg.information_scale
         if fit is None and cfg.guided_radius_px > 0:
             # too few global matches (dark, noisy keypoints; a turn on the spot): match again
             # where the predicted motion puts a's 3-D points, then the same robust fit
@@ -252,6 +255,9 @@ class VisualFrontend:
                 ia, ib = gp[:, 0], gp[:, 1]
                 fit = motion_only(a.X[ia], b.xn[ib], host.inverse(T_cacb), self.f, cfg.min_inliers)
                 n_pairs = len(gp)
+                if fit is not None:  # pairs chosen near the prediction lean towards it
+                    info_scale *= cfg.guided_information_scale
+                    self.guided_fits += 1
                 if fit is None and cfg.wide_inlier_px > INLIER_PX:
                     # dark, motion-blurred keypoints scatter past the gate: a wider one, and a
                     # pixel sigma widened by as much so the pose weighs less
@@ -274,7 +280,7 @@ class VisualFrontend:
             T_cbca = scaled if scaled is not None else T_cbca
         J = _projection_jacobian(host.transform_points(T_cbca, X))
         sigma = pixel_sigma / self.f
-        H = np.einsum("nki,nkj->ij", J, J) / sigma**2 * cfg.information_scale
+        H = np.einsum("nki,nkj->ij", J, J) / sigma**2 * info_scale
         # left perturbation of T_cb<-ca == (minus) right perturbation of T_ca<-cb; to the body:
         A = host.adjoint(self.T_cb)  # xi_cam = Ad(T_cb) xi_body
         info_body = A.T @ H @ A

@@ -238,6 +238,10 @@ def test_wrong_types_raise(data):
         {"loop": {"visual_dim_blur_px": float("nan")}},
         {"loop": {"visual_dim_blur_px": -1.0}},
         {"loop": {"visual_blur_px": -0.5}},
+        {"imu": {"zupt_hold_sigma": -0.001}},
+        {"imu": {"zupt_hold_sigma": float("nan")}},
+        {"vision": {"guided_information_scale": 0.0}},
+        {"vision": {"guided_information_scale": float("inf")}},
         {"rig": {"lidar_model": None}},
         {"imu": {"noise_scale": True}},
         {"vision": {"max_keypoints": 10.5}},
@@ -650,7 +654,7 @@ def test_guided_matching_registers_a_repetitive_pair_only_near_the_prediction():
     within ``guided_radius_px`` of where the predicted motion projects the 3-D points recovers
     the pose (from the data: the prediction is 3 cm / 0.3 deg off); a prediction far off
     (20 deg of yaw) finds no consistent matches, and the option off keeps the old result."""
-    from jaxslam.pipeline._visual import VisualFrontend
+    from jaxslam.pipeline._visual import VisualFrontend, _projection_jacobian
 
     cfg = PipelineConfig()
     rng = np.random.default_rng(5)
@@ -667,6 +671,15 @@ def test_guided_matching_registers_a_repetitive_pair_only_near_the_prediction():
     assert len(np.unique(pairs[:, 1])) == len(pairs)  # each feature of b used once
     far = T_ab @ host.make_pose(host.so3_exp(np.radians([0.0, 0.0, 20.0])), np.zeros(3))
     assert on.relative(a, b, far) is None
+    # the guided fit's information: its inliers' closed form times guided_information_scale
+    assert on.guided_fits == 1 and off.guided_fits == 0
+    T_cbca = on.T_cb @ host.inverse(vm.T) @ on.T_bc
+    J = _projection_jacobian(host.transform_points(T_cbca, vm.X_i))
+    H = np.einsum("nki,nkj->ij", J, J) / (cfg.vision.pixel_sigma / on.f) ** 2 * cfg.vision.information_scale
+    A = host.adjoint(on.T_cb)
+    scale = cfg.vision.guided_information_scale
+    assert 0 < scale < 1
+    np.testing.assert_allclose(vm.information, scale * (A.T @ H @ A), rtol=1e-9, atol=1e-6)
 
 
 def test_motion_only_gate_follows_the_inlier_threshold():
@@ -768,6 +781,34 @@ def test_zero_velocity_detector_takes_noise_only_intervals():
     assert not est._stationary(still[:30], dt[:30])  # 0.15 s: too short to tell
     off = Estimator(cfg.replace(imu={"zupt": False}))
     assert not off._stationary(still, dt)
+
+
+def test_position_hold_pins_the_translation_and_leaves_the_rotation_free():
+    """``ImuConfig.zupt_hold_sigma``: the hold costs ~0 for a turn on the spot of any angle, and
+    1 sigma of translation costs 1 without a turn. With a turn by ``theta`` the residual is the
+    SE(3) log's ``V(theta)^-1 t`` (closed form): still 1 along the turn's axis, and
+    ``|V^-1 t|^2 = 1 + theta^2 / 12 + O(theta^4)`` across it (keyframes turn <= 10 deg)."""
+    from jaxslam.pipeline._estimator import position_hold
+
+    sigma = 0.002
+    hold = position_hold(3, 4, sigma)
+    assert [int(v.ids[0]) for v in hold.variables] == [3, 4]
+    Ti = host.make_pose(host.so3_exp(np.array([0.1, -0.2, 0.3])), np.array([29.0, 0.4, 0.1]))
+
+    def cost(T_ij):
+        params = (host.matrix_to_params(Ti)[None], host.matrix_to_params(Ti @ T_ij)[None])
+        r = hold.noise.whiten(hold.evaluate(tuple(jnp.asarray(p) for p in params)))
+        return float(jnp.sum(r**2))
+
+    for angle in (0.0, 0.3, 1.5, 3.0):
+        turn = host.make_pose(host.so3_exp(np.array([0.0, 0.0, angle])), np.zeros(3))
+        assert cost(turn) < 1e-5, (angle, cost(turn))  # ~1000 rad sigma on the rotation
+        if angle > 0.3:
+            continue
+        for axis in np.eye(3):
+            moved = turn @ host.make_pose(np.eye(3), sigma * axis)
+            expected = 1.0 if axis[2] else 1.0 + angle**2 / 12
+            assert abs(cost(moved) - expected) < 1e-4, (angle, axis, cost(moved), expected)
 
 
 def test_odometry_length_ratio_compares_each_front_end_with_ground_truth():
