@@ -36,7 +36,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..core import BiasVar, Cauchy, Gaussian, Pose3Var, ScaleVar, Values, VelocityVar
+from ..core import BiasVar, Cauchy, Factor, Gaussian, Huber, Pose3Var, ScaleVar, Values, VelocityVar
 from ..errors import InputFormatError
 from ..factors import (
     BetweenFactor,
@@ -101,6 +101,25 @@ def _between(i: int, j: int, T: np.ndarray, info: np.ndarray, robust=None) -> Be
         Pose3Var(np.array([i])),
         Pose3Var(np.array([j])),
         _se3(T[None]),
+        Gaussian.from_information(jnp.asarray(info[None])),
+        robust=robust,
+    )
+
+
+def visual_odometry_factor(
+    i: int, j: int, T: np.ndarray, info: np.ndarray, scaled: bool, kernel: str = "cauchy", kernel_scale: float = 0.0
+) -> Factor:
+    """The graph factor of one visual-odometry edge: a between factor (or, with ``scaled``,
+    one whose translation is multiplied by the scale variable of keyframe ``j``) with
+    ``info``, under a robust kernel when ``kernel_scale`` > 0 (``vision.odometry_kernel``)."""
+    robust = (Huber if kernel == "huber" else Cauchy)(jnp.full(1, kernel_scale)) if kernel_scale > 0 else None
+    if not scaled:
+        return _between(i, j, T, info, robust=robust)
+    return ScaledBetweenFactor.create(
+        Pose3Var(np.array([i])),
+        Pose3Var(np.array([j])),
+        ScaleVar(np.array([j])),
+        host.matrix_to_params(T)[None],
         Gaussian.from_information(jnp.asarray(info[None])),
         robust=robust,
     )
@@ -434,7 +453,7 @@ class Estimator:
                     old = self.keyframes[k - n] if n > 1 and k - n >= 0 else None
                     # only over a stretch where every scan kept the axis (else the odometry's
                     # axis there is our own IMU prediction, not a measurement)
-                    if old is None or old.scan is None or scan.last_degenerate >= old.scan.index:
+                    if old is None or old.scan is None or not self._anchored_between(old.scan.index, scan.index):
                         continue
                     T_n = host.inverse(old.scan.T_odom) @ scan.T_odom
                     self.edges.append(("lidar odometry", k - n, k, T_n, info))
@@ -488,6 +507,16 @@ class Estimator:
         self.solver.update(factors, Values.create(values))
         self.timing["solver"] += time.perf_counter() - ts
         self.state = self._state(k)
+
+    def _anchored_between(self, first: int, last: int) -> bool:
+        """Whether LiDAR scans ``first`` and ``last`` both kept the axis and no more than
+        ``lidar.anchor_gap_scans`` consecutive scans between them lost it."""
+        assert self.lidar is not None
+        gap = self.cfg.lidar.anchor_gap_scans
+        if gap <= 0:
+            return self.lidar.weak_run(first, last) == 0
+        ends = self.lidar.weak_run(first, first) + self.lidar.weak_run(last, last)
+        return ends == 0 and self.lidar.weak_run(first, last) <= gap
 
     def _vision_job(
         self,
@@ -578,17 +607,11 @@ class Estimator:
                 if ratio > 0 and all((k, k + 1) in self._lidar_rel for k in range(vm.i, vm.j)):
                     info = with_length_sigma(info, vm.T[:3, 3], ratio)
                     self.length_softened += 1
-                if self._scaled_vision:
-                    scaled = ScaledBetweenFactor.create(
-                        Pose3Var(np.array([vm.i])),
-                        Pose3Var(np.array([vm.j])),
-                        ScaleVar(np.array([vm.j])),
-                        host.matrix_to_params(vm.T)[None],
-                        Gaussian.from_information(jnp.asarray(info[None])),
-                    )
-                    out.append(self._tag("vision", scaled))
-                else:
-                    out.append(self._tag("vision", _between(vm.i, vm.j, vm.T, info)))
+                vcfg = self.cfg.vision
+                factor = visual_odometry_factor(
+                    vm.i, vm.j, vm.T, info, self._scaled_vision, vcfg.odometry_kernel, vcfg.odometry_kernel_scale
+                )
+                out.append(self._tag("vision", factor))
                 self.edges.append(("visual odometry", vm.i, vm.j, vm.T, info))
                 self.visual_edges.append(vm)
                 kf.registered = True

@@ -7,6 +7,7 @@ axis where the geometry is degenerate."""
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 
 import numpy as np
@@ -90,6 +91,20 @@ class LidarOdometry:
         self.degenerate = 0
         self.processed = 0
         self._last_degenerate = -1
+        self._weak: list[int] = []  # numbers of the axis-weak scans, ascending
+
+    def weak_run(self, first: int, last: int) -> int:
+        """Longest run of consecutive axis-weak scans numbered ``first`` to ``last``
+        (inclusive): 0 when the odometry kept the axis on every one of them."""
+        lo = bisect.bisect_left(self._weak, first)
+        hi = bisect.bisect_right(self._weak, last)
+        run = best = 0
+        prev = None
+        for i in self._weak[lo:hi]:
+            run = run + 1 if prev is not None and i == prev + 1 else 1
+            best = max(best, run)
+            prev = i
+        return best
 
     def process(
         self,
@@ -138,6 +153,7 @@ class LidarOdometry:
         axis_weak = reg is None or not reg.converged or any(abs(w[3]) > 0.5 for w in reg.weak_directions)
         if axis_weak:
             self._last_degenerate = self.processed
+            self._weak.append(self.processed)
         self.processed += 1
         body_p, body_r = voxel_downsample(pts, 0.1, refl)
         body_pts = host.transform_points(self.T_bl, body_p)

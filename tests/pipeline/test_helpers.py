@@ -242,6 +242,10 @@ def test_wrong_types_raise(data):
         {"imu": {"zupt_hold_sigma": float("nan")}},
         {"vision": {"guided_information_scale": 0.0}},
         {"vision": {"guided_information_scale": float("inf")}},
+        {"vision": {"odometry_kernel_scale": -1.0}},
+        {"vision": {"odometry_kernel_scale": float("nan")}},
+        {"vision": {"odometry_kernel": "tukey"}},
+        {"lidar": {"anchor_gap_scans": -1}},
         {"rig": {"lidar_model": None}},
         {"imu": {"noise_scale": True}},
         {"vision": {"max_keypoints": 10.5}},
@@ -809,6 +813,81 @@ def test_position_hold_pins_the_translation_and_leaves_the_rotation_free():
             moved = turn @ host.make_pose(np.eye(3), sigma * axis)
             expected = 1.0 if axis[2] else 1.0 + angle**2 / 12
             assert abs(cost(moved) - expected) < 1e-4, (angle, axis, cost(moved), expected)
+
+
+def test_visual_odometry_factor_kernel_and_scale_in_closed_form():
+    """``vision.odometry_kernel`` / ``odometry_kernel_scale``: the factor's cost for keyframes
+    off the measurement by a whitened distance ``x`` is ``x^2/2`` without a kernel,
+    ``k^2/2 log(1 + x^2/k^2)`` under Cauchy and ``k x - k^2/2`` (beyond ``k``) under Huber;
+    the scaled form is zero when the translation is the measured one times ``exp(lambda)``."""
+    from jaxslam.core._factor import factor_cost
+    from jaxslam.pipeline._estimator import visual_odometry_factor
+
+    sigma = 0.01
+    info = np.diag(np.r_[np.full(3, 1e4), np.full(3, sigma**-2.0)])
+    T = host.make_pose(host.so3_exp(np.array([0.0, 0.02, 0.0])), np.array([0.3, 0.01, 0.0]))
+    Ti = host.make_pose(host.so3_exp(np.array([0.1, -0.2, 0.3])), np.array([12.0, 0.4, 0.1]))
+
+    def cost(factor, T_ij, lam=None):
+        params = [host.matrix_to_params(Ti)[None], host.matrix_to_params(Ti @ T_ij)[None]]
+        if lam is not None:
+            params.append(np.array([[lam]]))
+        return float(factor_cost(factor, tuple(jnp.asarray(p) for p in params))[0])
+
+    x = 7.0  # whitened distance: 7 sigma along the track
+    off = T @ host.make_pose(np.eye(3), np.array([x * sigma, 0.0, 0.0]))
+    k = 3.0
+    plain = visual_odometry_factor(2, 3, T, info, scaled=False)
+    assert plain.robust is None
+    assert abs(cost(plain, off) - x**2 / 2) < 1e-6
+    cauchy = visual_odometry_factor(2, 3, T, info, scaled=False, kernel="cauchy", kernel_scale=k)
+    assert abs(cost(cauchy, off) - k**2 / 2 * np.log1p(x**2 / k**2)) < 1e-6
+    huber = visual_odometry_factor(2, 3, T, info, scaled=False, kernel="huber", kernel_scale=k)
+    assert abs(cost(huber, off) - (k * x - k**2 / 2)) < 1e-6
+    assert cost(cauchy, T) < 1e-12 and cost(huber, T) < 1e-12
+
+    scaled = visual_odometry_factor(2, 3, T, info, scaled=True, kernel="cauchy", kernel_scale=k)
+    assert [int(v.ids[0]) for v in scaled.variables] == [2, 3, 3]
+    lam = np.log(1.02)
+    stretched = T.copy()
+    stretched[:3, 3] *= 1.02
+    assert cost(scaled, stretched, lam) < 1e-12
+    assert abs(cost(scaled, stretched, 0.0) - cost(cauchy, stretched)) < 1e-9
+
+
+def test_long_lidar_pairs_span_at_most_the_configured_weak_scans():
+    """``lidar.anchor_gap_scans``: ``weak_run`` is the longest run of consecutive axis-weak
+    scans in a closed range; a long pair needs anchored ends and, between them, no weak scan
+    (0, the rule before the option: the same as ``last_degenerate < first``) or runs of at
+    most the gap."""
+    from types import SimpleNamespace
+
+    from jaxslam.pipeline._estimator import Estimator
+    from jaxslam.pipeline._lidar_frontend import LidarOdometry
+
+    odo = LidarOdometry(PipelineConfig().lidar, np.eye(4))
+    odo._weak = [3, 7, 8, 20, 21, 22, 23]
+    assert [odo.weak_run(a, b) for a, b in [(0, 2), (0, 3), (4, 6), (0, 10), (7, 7), (9, 19), (0, 30), (22, 40)]] == [
+        0,
+        1,
+        0,
+        2,
+        1,
+        0,
+        4,
+        2,
+    ]
+
+    def anchored(gap, a, b):
+        stub = SimpleNamespace(lidar=odo, cfg=SimpleNamespace(lidar=SimpleNamespace(anchor_gap_scans=gap)))
+        return Estimator._anchored_between(stub, a, b)
+
+    last_weak = lambda b: max([w for w in odo._weak if w <= b], default=-1)  # noqa: E731
+    for a, b in [(0, 2), (0, 5), (4, 6), (4, 9), (9, 19), (10, 30), (3, 5), (24, 30)]:
+        assert anchored(0, a, b) == (last_weak(b) < a), (a, b)
+    assert anchored(1, 0, 5) and not anchored(1, 0, 10) and anchored(2, 0, 10)
+    assert not anchored(5, 3, 10) and not anchored(5, 0, 8)  # a weak end is never anchored
+    assert not anchored(3, 10, 30) and anchored(4, 10, 30)
 
 
 def test_odometry_length_ratio_compares_each_front_end_with_ground_truth():
