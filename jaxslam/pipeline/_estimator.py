@@ -107,7 +107,7 @@ def _between(i: int, j: int, T: np.ndarray, info: np.ndarray, robust=None) -> Be
 
 
 def visual_odometry_factor(
-    i: int, j: int, T: np.ndarray, info: np.ndarray, scaled: bool, kernel: str = "cauchy", kernel_scale: float = 0.0
+    i: int, j: int, T: np.ndarray, info: np.ndarray, scaled: bool, kernel: str = "huber", kernel_scale: float = 0.0
 ) -> Factor:
     """The graph factor of one visual-odometry edge: a between factor (or, with ``scaled``,
     one whose translation is multiplied by the scale variable of keyframe ``j``) with
@@ -453,7 +453,12 @@ class Estimator:
                     old = self.keyframes[k - n] if n > 1 and k - n >= 0 else None
                     # only over a stretch where every scan kept the axis (else the odometry's
                     # axis there is our own IMU prediction, not a measurement)
-                    if old is None or old.scan is None or not self._anchored_between(old.scan.index, scan.index):
+                    if (
+                        old is None
+                        or old.scan is None
+                        or self.lidar is None
+                        or not self.lidar.anchored_between(old.scan.index, scan.index, self.cfg.lidar.anchor_gap_scans)
+                    ):
                         continue
                     T_n = host.inverse(old.scan.T_odom) @ scan.T_odom
                     self.edges.append(("lidar odometry", k - n, k, T_n, info))
@@ -507,16 +512,6 @@ class Estimator:
         self.solver.update(factors, Values.create(values))
         self.timing["solver"] += time.perf_counter() - ts
         self.state = self._state(k)
-
-    def _anchored_between(self, first: int, last: int) -> bool:
-        """Whether LiDAR scans ``first`` and ``last`` both kept the axis and no more than
-        ``lidar.anchor_gap_scans`` consecutive scans between them lost it."""
-        assert self.lidar is not None
-        gap = self.cfg.lidar.anchor_gap_scans
-        if gap <= 0:
-            return self.lidar.weak_run(first, last) == 0
-        ends = self.lidar.weak_run(first, first) + self.lidar.weak_run(last, last)
-        return ends == 0 and self.lidar.weak_run(first, last) <= gap
 
     def _vision_job(
         self,

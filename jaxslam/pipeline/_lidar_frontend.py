@@ -106,6 +106,12 @@ class LidarOdometry:
             prev = i
         return best
 
+    def anchored_between(self, first: int, last: int, gap: int) -> bool:
+        """Whether scans ``first`` and ``last`` both kept the axis and no more than ``gap``
+        consecutive scans between them lost it (``lidar.anchor_gap_scans``)."""
+        ends = self.weak_run(first, first) + self.weak_run(last, last)
+        return ends == 0 and self.weak_run(first, last) <= gap
+
     def process(
         self,
         t_ref: float,

@@ -860,9 +860,6 @@ def test_long_lidar_pairs_span_at_most_the_configured_weak_scans():
     scans in a closed range; a long pair needs anchored ends and, between them, no weak scan
     (0, the rule before the option: the same as ``last_degenerate < first``) or runs of at
     most the gap."""
-    from types import SimpleNamespace
-
-    from jaxslam.pipeline._estimator import Estimator
     from jaxslam.pipeline._lidar_frontend import LidarOdometry
 
     odo = LidarOdometry(PipelineConfig().lidar, np.eye(4))
@@ -879,8 +876,7 @@ def test_long_lidar_pairs_span_at_most_the_configured_weak_scans():
     ]
 
     def anchored(gap, a, b):
-        stub = SimpleNamespace(lidar=odo, cfg=SimpleNamespace(lidar=SimpleNamespace(anchor_gap_scans=gap)))
-        return Estimator._anchored_between(stub, a, b)
+        return odo.anchored_between(a, b, gap)
 
     last_weak = lambda b: max([w for w in odo._weak if w <= b], default=-1)  # noqa: E731
     for a, b in [(0, 2), (0, 5), (4, 6), (4, 9), (9, 19), (10, 30), (3, 5), (24, 30)]:
