@@ -187,17 +187,18 @@ class VisionConfig:
     brings the guided means level. 1 = trust them as the others."""
     odometry_kernel: str = "huber"
     """Which robust kernel ``odometry_kernel_scale`` sets: huber (convex) or cauchy."""
-    odometry_kernel_scale: float = 0.0
+    odometry_kernel_scale: float = 6.0
     """Robust kernel on the visual-odometry factors, its scale in whitened units (0 = none,
-    least squares: the default). Most fits are calibrated (on dark seed 6 the translation
-    chi-square against ground truth had a median of ~3 for 3 dof), but a few percent are
-    gross (chi-square 30-200 in the dark textureless stretch on the way back) and, stated at
-    a few millimetres, pulled that run 0.2 m along the tunnel (APE 0.051 m); Huber at 3.5
-    fixed it (0.021). Off by default because the visual odometry is the only length measure
-    on the way back: on held-out dark seed 8 the kernel let the estimate drift 1.1 m there,
-    the visual loops' search then missed the true matches, and two false loops were accepted
-    (APE 0.50 m; 0.059 without the kernel). A Cauchy kernel at 2.5 lost dark seed 6 (APE
-    1.06 m)."""
+    least squares). Most fits are calibrated (on dark seed 6 the translation chi-square
+    against ground truth had a median of ~3 for 3 dof), but a few percent are gross
+    (chi-square 30-200 in the dark textureless stretch on the way back) and, stated at a few
+    millimetres, pulled that run 0.2 m along the tunnel (APE 0.051 m without a kernel). Not
+    lower: the visual odometry is the only length measure on the way back, and at 3.5 the
+    estimate of held-out dark seed 8 drifted 1.1 m there, the visual loops' search missed the
+    true matches and two false loops were accepted (APE 0.50 m). A Cauchy kernel at 2.5 lost
+    dark seed 6 (APE 1.06 m). Huber 6 was first reverted (12-04) for failing the LiDAR-dropout
+    test (APE 0.18 m); the cause was the odometry's prediction after a dropout (fixed 12-04),
+    which sent the estimate into the wrong basin with or without a kernel."""
     wide_inlier_px: float = 3.5
     """When the guided pairs leave fewer than ``min_inliers`` within 2 px of the motion-only
     fit, fit them again with this inlier threshold (and ``pixel_sigma`` scaled by

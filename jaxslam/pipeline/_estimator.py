@@ -184,6 +184,7 @@ class Estimator:
         self.frames_seen = 0
         self.timing: defaultdict[str, float] = defaultdict(float)
         self._cursor: NavState | None = None
+        self._odom_cursor: np.ndarray | None = None  # LiDAR odometry pose at the cursor's time
         self._last_image_event: float | None = None
         self._lidar_rel: dict[tuple[int, int], np.ndarray] = {}
         self._scale_sums = [0.0, 0.0, 0]
@@ -313,9 +314,10 @@ class Estimator:
             if len(after):
                 _, poses_b = propagate(self.imu, pred, float(after[-1]), self.gravity, times=after)
                 poses = np.concatenate([poses_a, poses_b]) if poses_a is not None else poses_b
-            last = self.lidar.last
-            # predicted odometry pose: the last odometry pose moved by the IMU-predicted motion
-            T_odom_pred = pred.T.copy() if last is None else last.T_odom @ host.inverse(cur.T) @ pred.T
+            # predicted odometry pose: the odometry pose at the cursor moved by the IMU-predicted
+            # motion since (chained through events without a scan: after a LiDAR dropout the
+            # last scan's pose is seconds old, and the motion since is not only this event's)
+            T_odom_pred = self._odom_pose(cur, pred)
             try:
                 result = self.lidar.process(
                     t, scan.points, scan.t + scan.point_times, (times, poses), T_odom_pred, intensity=scan.intensity
@@ -323,11 +325,21 @@ class Estimator:
             except InputFormatError as e:
                 self.warnings[f"lidar: scan rejected ({e})"] += 1
                 result = None
+        if self.lidar is not None and self.lidar.last is not None:
+            self._odom_cursor = result.T_odom if result is not None else self._odom_pose(cur, pred)
         self.timing["lidar"] += time.perf_counter() - t0
         if self.keyframes and not self._is_keyframe(t, pred, result):
             return
         self._add_keyframe(t, pred, result)
         self._cursor = self.state
+
+    def _odom_pose(self, cur: NavState, pred: NavState) -> np.ndarray:
+        """The body pose in the LiDAR odometry frame predicted at ``pred``'s time: the odometry
+        pose at the cursor ``cur`` moved by the IMU motion from ``cur`` to ``pred`` (the
+        estimate's own pose before the first scan)."""
+        if self._odom_cursor is None:
+            return pred.T.copy()
+        return self._odom_cursor @ host.inverse(cur.T) @ pred.T
 
     def _is_keyframe(self, t: float, pred: NavState, scan: ScanResult | None) -> bool:
         kcfg = self.cfg.keyframe
