@@ -245,6 +245,8 @@ def test_wrong_types_raise(data):
         {"vision": {"odometry_kernel_scale": -1.0}},
         {"vision": {"odometry_kernel_scale": float("nan")}},
         {"vision": {"odometry_kernel": "tukey"}},
+        {"vision": {"patch_min_fraction": 1.5}},
+        {"vision": {"patch_min_fraction": float("nan")}},
         {"lidar": {"anchor_gap_scans": -1}},
         {"rig": {"lidar_model": None}},
         {"imu": {"noise_scale": True}},

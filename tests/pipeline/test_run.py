@@ -76,6 +76,16 @@ def test_clean_run_is_accurate(baseline, records) -> None:
     assert not [k for k in est.warnings if any(f in k for f in faults)], est.warnings
 
 
+def test_visual_poses_are_fitted_on_aligned_patches(baseline, records, config) -> None:
+    """``vision.patch_refine`` (on by default): most visual-odometry poses are fitted again on
+    the older image's patches found in the newer one; off, none are, and the run still works."""
+    est = baseline[0]
+    assert est.visual.patch_refined >= 0.8 * len(est.visual_edges) > 0
+    off, _, ape = _run(records, config.replace(vision={"patch_refine": False}))
+    assert off.visual.patch_refined == 0 and len(off.visual_edges) > 0
+    assert ape < 0.1, ape
+
+
 def test_run_recording_writes_the_results_folder(bag, config, tmp_path) -> None:
     m = run_recording(bag, tmp_path, config.replace(loop={"enabled": True}))
     for name in (
