@@ -473,7 +473,7 @@ def align_patches(
     ta -= ta.mean(1, keepdims=True)
     ta /= np.linalg.norm(ta, axis=1, keepdims=True) + 1e-9
     b = np.asarray(img_b, np.float64)
-    gy, gx = np.gradient(b)
+    gy, gx = (np.asarray(g) for g in np.gradient(b))
     shift = np.zeros((m, 2))
     ncc = np.zeros(m)
     for _ in range(iterations):
