@@ -321,7 +321,7 @@ class VisualFrontend:
         ``(T_cbca, ia, ib, x_b, X_b, e)``: the pose, the surviving pairs, b's refined normalised
         points, b's 3-D points moved along the refined rays onto b's own LiDAR planes, and the
         fit's errors; None (keep the detections) where images or planes are missing or fewer
-        than ``min_inliers`` patches align."""
+        than ``min_inliers`` patches, or ``patch_min_fraction`` of them, align."""
         cfg = self.cfg
         if a.image is None or b.image is None or a.normal is None or b.normal is None:
             return None
@@ -342,7 +342,9 @@ class VisualFrontend:
         ia, ib, x = ia[keep], ib[keep], x[keep]
         rays = np.concatenate([x, np.ones((len(x), 1))], 1)
         nb = b.normal[ib]
-        Xb = rays * (np.einsum("ni,ni->n", nb, b.X[ib]) / np.einsum("ni,ni->n", nb, rays))[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = np.einsum("ni,ni->n", nb, b.X[ib]) / np.einsum("ni,ni->n", nb, rays)
+        Xb = rays * np.where(depth > 0.1, depth, np.nan)[:, None]  # NaN: no depth (edge-on plane)
         return T, ia, ib, x, Xb, e
 
     def guided_pairs(self, a: KeyframeFeatures, b: KeyframeFeatures, T_cbca: np.ndarray) -> np.ndarray:
