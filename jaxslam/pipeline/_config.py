@@ -161,13 +161,15 @@ class VisionConfig:
     max_keypoints: int = 1000
     ransac: bool = True
     """Essential-matrix RANSAC on the matches (``--no-ransac``: every match is used)."""
-    patch_refine: bool = True
+    patch_refine: bool = False
     """After the motion-only fit, find each inlier's patch of the older image in the newer
     one (laid on its LiDAR plane, aligned by Gauss-Newton on normalised grey values) and fit
     again on those positions instead of the detected keypoints
     (:func:`jaxslam.pipeline._visual.align_patches`). Detected positions shift with a
     feature's scale and the light; with exact depth, coming home towards the bright portal
-    (uneven seed 6) they made the visual lengths 0.8 % short, the aligned ones 0.02 %."""
+    (uneven seed 6) they made the visual lengths 0.8 % short, the aligned ones 0.02 %. Off by
+    default until the whole suite has passed with it (session 18 ran out of time after
+    measuring it: both goals on 16 of 18 recordings, 4 of 4 held out; README)."""
     patch_min_fraction: float = 0.7
     """Refine only when at least this fraction of the inliers' patches align (else keep the
     detections). In the dark the sensor noise caps a true patch's NCC: on dark seed 8 a
