@@ -212,6 +212,7 @@ def register(
     T = T0.copy()
     converged, it = False, 0
     basis: tuple[np.ndarray, np.ndarray] | None = None
+    T_prev: np.ndarray | None = None
     for it in range(1, cfg.max_iterations + 1):
         terms = _linearize(T, src, voxel_map, cfg, it, src_i)
         if terms.n < cfg.min_correspondences:
@@ -234,9 +235,13 @@ def register(
             d = se3_log(se3_inverse(T0) @ T_new) / s_inv
             T_new = T0 @ se3_exp(s_inv * (d - W @ (W.T @ d)))
         xi = se3_log(se3_inverse(T) @ T_new)
-        T = orthonormalize(T_new)
-        small = (
-            np.linalg.norm(xi[:3]) < cfg.convergence_rotation and np.linalg.norm(xi[3:]) < cfg.convergence_translation
+        # a 2-cycle (the step back to where it was two iterations ago) is a standstill too: the
+        # weak-direction remapping can leave a step of ~6e-5 rad going back and forth for ever
+        xi2 = se3_log(se3_inverse(T_prev) @ T_new) if T_prev is not None else xi
+        T_prev, T = T, orthonormalize(T_new)
+        small = any(
+            np.linalg.norm(x[:3]) < cfg.convergence_rotation and np.linalg.norm(x[3:]) < cfg.convergence_translation
+            for x in (xi, xi2)
         )
         if small and _annealed(cfg, it):
             converged = True

@@ -574,6 +574,17 @@ class Estimator:
         times = np.array([kf.t for kf in self.keyframes[:k]] + [t])
         return LoopQuery(k, t, poses, np.concatenate([[0.0], np.cumsum(steps)]), times)
 
+    def _last_loop(self) -> list:
+        """The recording's last keyframe is always tried for a LiDAR loop: it is where a
+        drive out and back returns to its start, and ``loop.every`` may have skipped it."""
+        k = len(self.keyframes) - 1
+        if self.loops is None or k <= 0 or k % self.loops.cfg.every == 0 or self.keyframes[k].scan is None:
+            return []
+        tl = time.perf_counter()
+        loops = self.loops.detect(k, self.keyframes, self._poses(), force=True)
+        self.timing["loop"] += time.perf_counter() - tl
+        return [self._loop_factor(loop) for loop in loops]
+
     def _loop_factor(self, loop: Loop | VisualLoop):
         """The graph factor of an accepted loop (LiDAR or visual): its relative pose and
         information under a Cauchy kernel; the edge is recorded for the residual plots."""
@@ -676,6 +687,7 @@ class Estimator:
         late = self._collect_vision()
         if self._executor is not None:
             self._executor.shutdown(wait=True)
+        late += self._last_loop()
         if late:
             self.solver.update(late)
         final = None

@@ -91,6 +91,8 @@ class LidarOdometry:
         self.degenerate = 0
         self.processed = 0
         self._last_degenerate = -1
+        self.continued = 0  # registrations given a second run of iterations
+        self._failures = 0  # consecutive failed registrations
         self._weak: list[int] = []  # numbers of the axis-weak scans, ascending
 
     def weak_run(self, first: int, last: int) -> int:
@@ -146,8 +148,15 @@ class LidarOdometry:
             T_l = T_init
         else:
             reg = register(src, self.map, T_init, self.icp, source_intensity=src_r if use_i else None)
+            if not reg.converged and reg.iterations >= self.icp.max_iterations:
+                # out of iterations, still moving (a poor prediction, as after a dropout, slides
+                # slowly along the tunnel): go on once from where it stopped
+                self.continued += 1
+                reg = register(src, self.map, reg.T, self.icp, source_intensity=src_r if use_i else None)
             T_l = reg.T if reg.converged else T_init
-        if self.processed % cfg.map_every == 0 or len(self.map) == 0:
+        self._failures = 0 if reg is None or reg.converged else self._failures + 1
+        insert = self._failures == 0 or self._failures >= cfg.map_after_failures
+        if insert and (self.processed % cfg.map_every == 0 or len(self.map) == 0 or self._failures):
             m_pts, m_r = voxel_downsample(pts, cfg.map_voxel, refl)
             self.map.add(host.transform_points(T_l, m_pts), T_l[:3, 3], intensity=m_r if use_i else None)
         T_b = T_l @ self.T_lb

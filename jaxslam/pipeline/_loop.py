@@ -68,11 +68,12 @@ class LoopCloser:
         self.rejected: list[tuple[int, int, str]] = []
         self.attempts = 0
 
-    def detect(self, k: int, keyframes: list, poses: np.ndarray) -> list[Loop]:
-        """Loops from keyframe ``k`` (every ``loop.every``-th) to older keyframes, given the
-        current pose estimates (K, 4, 4); accepted ones are also kept in ``accepted``."""
+    def detect(self, k: int, keyframes: list, poses: np.ndarray, force: bool = False) -> list[Loop]:
+        """Loops from keyframe ``k`` (every ``loop.every``-th, or any with ``force``: the
+        recording's last keyframe) to older keyframes, given the current pose estimates
+        (K, 4, 4); accepted ones are also kept in ``accepted``."""
         cfg = self.cfg
-        if k % cfg.every:
+        if k % cfg.every and not force:
             return []
         cur = keyframes[k]
         if cur.scan is None or cur.scan.registration is None:

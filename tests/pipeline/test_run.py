@@ -77,12 +77,22 @@ def test_clean_run_is_accurate(baseline, records) -> None:
 
 
 def test_visual_poses_are_fitted_on_aligned_patches(baseline, records, config) -> None:
-    """``vision.patch_refine`` (off by default for now): on, most visual-odometry poses are
-    fitted again on the older image's patches found in the newer one and the run stays
-    accurate; off, none are."""
-    assert baseline[0].visual.patch_refined == 0 and len(baseline[0].visual_edges) > 0
-    on, _, ape = _run(records, config.replace(vision={"patch_refine": True}))
-    assert on.visual.patch_refined >= 0.8 * len(on.visual_edges) > 0
+    """``vision.patch_refine`` (the default): most visual-odometry poses are fitted again on
+    the older image's patches found in the newer one; off, none are and the run stays
+    accurate."""
+    assert baseline[0].visual.patch_refined >= 0.8 * len(baseline[0].visual_edges) > 0
+    off, _, ape = _run(records, config.replace(vision={"patch_refine": False}))
+    assert off.visual.patch_refined == 0 and len(off.visual_edges) > 0
+    assert ape < 0.1, ape
+
+
+def test_the_last_keyframe_is_always_tried_for_a_loop(records, config) -> None:
+    """A drive out and back ends where it started: the recording's last keyframe is tried for
+    a loop even when ``loop.every`` skips it (with patch refinement the short tunnel once
+    ended one keyframe after a multiple of three and accepted no loop at all)."""
+    est, _, ape = _run(records, config.replace(loop={"every": 1000}))
+    last = len(est.keyframes) - 1
+    assert est.loops.attempts == 1 and [lp.j for lp in est.loops.accepted] == [last], est.loops.rejected
     assert ape < 0.1, ape
 
 
