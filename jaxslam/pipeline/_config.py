@@ -388,6 +388,17 @@ class LoopConfig:
     range's edge, where it cannot show as a peak) while a periodic alias sits inside and is
     accepted unopposed: on seed 4 dark with ``vision.length_sigma_ratio: 0.015`` five false
     loops, 1.13-1.20 m off, where the margin gives none (see README)."""
+    visual_confirm_m: float = 6.0
+    """A visual loop joins the graph only once a loop from a later query (within this many
+    metres travelled after it) agrees with it on where the current keyframe is along the
+    track (``visual_confirm_tol`` plus ``visual_confirm_drift_per_m`` per metre between the
+    two); one left unconfirmed is dropped. An alias wins where the estimate has drifted
+    past the search range, and the next query's alias lands elsewhere, while true loops
+    agree: on dark seed 8 a lone false loop 0.88 m off (see README). 0 = accept at once."""
+    visual_confirm_tol: float = 0.1
+    visual_confirm_drift_per_m: float = 0.05
+    """The agreement two loops need (m, and m per metre between their keyframes: the
+    odometry's drift between them, 5 % where the dark visual odometry was worst)."""
     visual_min_inliers: int = 20
     visual_max_cross: float = 0.05
     """Refuse a visual loop whose alignment moved the prediction across the track (laterally
@@ -506,8 +517,12 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a relative sigma >= 0 (0 = off), got {v!r}")
             if k == "wide_inlier_px" and not np.isfinite(v):
                 raise ConfigError(f"{where}.{k}: expected a threshold in pixels (2 or less = off), got {v!r}")
-            if k == "visual_alias_margin" and not (np.isfinite(v) and v >= 0):
+            if k in ("visual_alias_margin", "visual_confirm_m", "visual_confirm_tol") and not (
+                np.isfinite(v) and v >= 0
+            ):
                 raise ConfigError(f"{where}.{k}: expected a distance >= 0 (m), got {v!r}")
+            if k == "visual_confirm_drift_per_m" and not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"{where}.{k}: expected a drift >= 0 (m per m), got {v!r}")
             if k == "odometry_kernel_scale" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a kernel scale >= 0 (whitened, 0 = off), got {v!r}")
             if k == "patch_min_fraction" and not (np.isfinite(v) and 0 <= v <= 1):

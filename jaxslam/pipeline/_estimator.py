@@ -687,6 +687,8 @@ class Estimator:
         late = self._collect_vision()
         if self._executor is not None:
             self._executor.shutdown(wait=True)
+        if self.visual_loops is not None:
+            self.visual_loops.close()
         late += self._last_loop()
         if late:
             self.solver.update(late)

@@ -120,6 +120,8 @@ class VisualLoopCloser:
             [-K[0, 2] / K[0, 0], (w - K[0, 2]) / K[0, 0], -K[1, 2] / K[1, 1], (h - K[1, 2]) / K[1, 1]]
         )
         self.accepted: list[VisualLoop] = []
+        self.pending: list[VisualLoop] = []
+        """Loops found but not yet confirmed by a later query (``visual_confirm_m``)."""
         self.rejected: list[tuple[int, int, str]] = []
         self.attempts = 0
         self.last_hypotheses: list[tuple[int, float]] = []
@@ -139,9 +141,56 @@ class VisualLoopCloser:
         ``features`` and grey ``images``)."""
         self._rectified = {}
         try:
-            return self._detect(q, image, features, images)
+            return self.confirm(q, self._detect(q, image, features, images))
         finally:
             self._rectified = None
+
+    def confirm(self, q: LoopQuery, found: list[VisualLoop]) -> list[VisualLoop]:
+        """The loops that join the graph now: those of ``found`` that agree with a pending or
+        accepted loop of an earlier query within ``visual_confirm_m`` metres, and the pending
+        ones they agree with (oldest first). Agreement: where the two loops put their current
+        keyframes along the track, relative to the estimate ``q.poses``, differs by at most
+        ``visual_confirm_tol`` plus ``visual_confirm_drift_per_m`` per metre between them (the
+        odometry's drift). A loop of ``found`` that agrees with none waits; pending loops
+        farther back than ``visual_confirm_m`` are dropped (``rejected``, "unconfirmed")."""
+        cfg = self.cfg
+        if cfg.visual_confirm_m <= 0:
+            self.accepted += found
+            return found
+        here = q.travelled[q.k]
+        axis = q.poses[q.k][:3, 0]  # the direction of travel (body x) in the world
+
+        def along(lp: VisualLoop) -> float:  # where the loop puts keyframe j, ahead of its estimate
+            return float(((q.poses[lp.i] @ lp.T)[:3, 3] - q.poses[lp.j][:3, 3]) @ axis)
+
+        def near(lp: VisualLoop) -> bool:
+            return here - q.travelled[lp.j] <= cfg.visual_confirm_m
+
+        for lp in self.pending:
+            if not near(lp):
+                self.rejected.append((lp.i, lp.j, "unconfirmed by a later loop"))
+        self.pending = [lp for lp in self.pending if near(lp)]
+        earlier = [lp for lp in self.pending + self.accepted if lp.j < q.k and near(lp)]
+        confirmed: set[int] = set()
+        out = []
+        for lp in found:
+            agree = [
+                o
+                for o in earlier
+                if abs(along(lp) - along(o))
+                <= cfg.visual_confirm_tol + cfg.visual_confirm_drift_per_m * abs(here - q.travelled[o.j])
+            ]
+            confirmed |= {id(o) for o in agree}
+            (out if agree else self.pending).append(lp)
+        now = [lp for lp in self.pending if id(lp) in confirmed] + out
+        self.pending = [lp for lp in self.pending if id(lp) not in confirmed]
+        self.accepted += now
+        return now
+
+    def close(self) -> None:
+        """End of the recording: loops still waiting for confirmation are dropped."""
+        self.rejected += [(lp.i, lp.j, "unconfirmed at the end") for lp in self.pending]
+        self.pending = []
 
     def _detect(
         self,
@@ -524,9 +573,7 @@ class VisualLoopCloser:
         if not ok:
             self.rejected.append((i, k, f"inconsistent with odometry (chi2 {m2:.1f})"))
             return None
-        loop = VisualLoop(i, k, T_ik, info, len(keep), ncc.shape[1], float(np.mean(ncc_pts[good])), m2, blur)
-        self.accepted.append(loop)
-        return loop
+        return VisualLoop(i, k, T_ik, info, len(keep), ncc.shape[1], float(np.mean(ncc_pts[good])), m2, blur)
 
 
 def translation_only(

@@ -65,7 +65,9 @@ def frames():
 
 
 def _closer(rig: RigConfig, **changes) -> VisualLoopCloser:
-    cfg = dataclasses.replace(LoopConfig(), **{"min_gap_s": 0.0, **changes})
+    """One query's loops, returned at once (the confirmation by a later query has its own
+    tests in test_visual_loop_confirm.py)."""
+    cfg = dataclasses.replace(LoopConfig(), **{"min_gap_s": 0.0, "visual_confirm_m": 0.0, **changes})
     T_bc = host.params_to_matrix(np.asarray(rig.body_T_camera))
     K = rig.K()
     return VisualLoopCloser(cfg, T_bc, 0.5 * (K[0, 0] + K[1, 1]), rig.camera_size, K, rig.camera_distortion)
