@@ -172,7 +172,7 @@ class VisualLoopCloser:
         self.pending = [lp for lp in self.pending if near(lp)]
         earlier = [lp for lp in self.pending + self.accepted if lp.j < q.k and near(lp)]
         confirmed: set[int] = set()
-        out = []
+        out: list[VisualLoop] = []
         for lp in found:
             agree = [
                 o
