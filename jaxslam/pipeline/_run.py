@@ -205,6 +205,12 @@ def run_recording(
         "visual_loops_accepted": len(est.visual_loops.accepted) if est.visual_loops else 0,
         "visual_loops_blurred": sum(lp.blur_px > 0 for lp in est.visual_loops.accepted) if est.visual_loops else 0,
         "visual_loops_attempted": est.visual_loops.attempts if est.visual_loops else 0,
+        "visual_loops_wide": (
+            sum(lp.drift_per_m > est.visual_loops.cfg.visual_drift_per_m for lp in est.visual_loops.accepted)
+            if est.visual_loops
+            else 0
+        ),
+        "visual_loop_wide_searches": est.visual_loops.wide_searches if est.visual_loops else 0,
         "visual_scale": est._vo_scale,
         "zero_velocity_updates": est.zupt_count,
         "visual_lengths_softened": est.length_softened,

@@ -23,7 +23,9 @@ by the estimate and photometric:
    since the old keyframe, clamped to ``visual_min_shift`` .. ``visual_max_shift``, plus
    ``visual_alias_margin``: a drift just past three times the expected would put the true
    peak at the range's edge, where it cannot show as a peak, and leave a periodic alias
-   inside to win unopposed); both
+   inside to win unopposed; where too few patches align, the search and the gate are done
+   once more at ``visual_wide_drift_per_m``: in a dark stretch the visual odometry can run
+   10 % short while the LiDAR is blind along the axis); both
    images are undistorted (OpenCV ``remap``) and blurred by ``visual_blur_px`` so a few
    centimetres of lateral error do not hide the peak;
 3. hypotheses: up to ``visual_hypotheses`` local peaks of the mean (clipped) NCC over the
@@ -79,6 +81,9 @@ class VisualLoop:
     mahalanobis2: float
     blur_px: float = 0.0
     """Blur of the images its patches were aligned on (0: sharp; ``visual_dim_blur_px``)."""
+    drift_per_m: float = 0.0
+    """The drift per metre its search range and gate assumed (``visual_drift_per_m``, or
+    ``visual_wide_drift_per_m`` when the first search aligned too few patches)."""
 
 
 @dataclasses.dataclass
@@ -124,6 +129,8 @@ class VisualLoopCloser:
         """Loops found but not yet confirmed by a later query (``visual_confirm_m``)."""
         self.rejected: list[tuple[int, int, str]] = []
         self.attempts = 0
+        self.wide_searches = 0
+        """Candidates searched again at ``visual_wide_drift_per_m``."""
         self.last_hypotheses: list[tuple[int, float]] = []
         """The last verification's aligned hypotheses: (patches aligned, shift in m), best first."""
 
@@ -494,6 +501,14 @@ class VisualLoopCloser:
         tried.sort(key=lambda h: -h[0])
         return tried
 
+    def search_range(self, drift_per_m: float, travelled: float) -> float:
+        """How far (m) the search along the track reaches either side of the prediction:
+        three times the drift expected over ``travelled`` metres, clamped to
+        [``visual_min_shift``, ``visual_max_shift``], plus ``visual_alias_margin``."""
+        cfg = self.cfg
+        drift = max(drift_per_m * travelled, 0.02)
+        return min(max(3.0 * drift, cfg.visual_min_shift), cfg.visual_max_shift) + cfg.visual_alias_margin
+
     def _verify(
         self,
         i: int,
@@ -504,10 +519,42 @@ class VisualLoopCloser:
         travelled: float,
         poses: np.ndarray,
     ) -> VisualLoop | None:
+        """Search and verify at the expected drift; where too few patches align there, once
+        more at ``visual_wide_drift_per_m`` (a wider range and a looser gate), when that
+        reaches further. Only the last search's refusal is kept in ``rejected``."""
         cfg = self.cfg
-        drift = max(cfg.visual_drift_per_m * travelled, 0.02)
-        max_shift = min(max(3.0 * drift, cfg.visual_min_shift), cfg.visual_max_shift)
-        reach = max_shift + cfg.visual_alias_margin  # competitors are looked for this far
+        narrow, wide = cfg.visual_drift_per_m, cfg.visual_wide_drift_per_m
+        n_rej = len(self.rejected)
+        loop, too_few = self._verify_at(i, k, fi, images, T_ki, travelled, poses, narrow)
+        if (
+            loop is None
+            and too_few
+            and wide > narrow
+            and self.search_range(wide, travelled) > self.search_range(narrow, travelled) + cfg.visual_shift_step
+        ):
+            del self.rejected[n_rej:]
+            self.wide_searches += 1
+            loop, _ = self._verify_at(i, k, fi, images, T_ki, travelled, poses, wide)
+            if loop is None and len(self.rejected) > n_rej:
+                a, b, why = self.rejected[-1]
+                self.rejected[-1] = (a, b, f"wide search: {why}")
+        return loop
+
+    def _verify_at(
+        self,
+        i: int,
+        k: int,
+        fi: KeyframeFeatures,
+        images: tuple[np.ndarray, np.ndarray],
+        T_ki: np.ndarray,
+        travelled: float,
+        poses: np.ndarray,
+        drift_per_m: float,
+    ) -> tuple[VisualLoop | None, bool]:
+        """One search and verification assuming ``drift_per_m``: (the loop or None, whether it
+        was refused because too few patches aligned)."""
+        cfg = self.cfg
+        reach = self.search_range(drift_per_m, travelled)  # competitors are looked for this far
         shifts, ncc, pts = self.along_track(fi, images, T_ki, reach)
         a = self.T_cb[:3, :3] @ np.array([1.0, 0.0, 0.0])  # travel direction in camera k
         pts = np.sort(pts)
@@ -524,13 +571,13 @@ class VisualLoopCloser:
         if not tried or tried[0][0] < cfg.visual_min_inliers:
             n = tried[0][0] if tried else 0
             self.rejected.append((i, k, f"{n} patches align (of {ncc.shape[1]})"))
-            return None
+            return None, True
         best = tried[0]
         if len(tried) > 1 and tried[1][0] > cfg.visual_peak_ratio * best[0]:
             self.rejected.append(
                 (i, k, f"ambiguous: {best[0]} and {tried[1][0]} patches align at {best[1]:+.2f}, {tried[1][1]:+.2f} m")
             )
-            return None
+            return None, False
         _, _, T, pts, good, ncc_pts = best
         # the prediction's lateral and vertical come from the LiDAR (the walls, floor, ceiling
         # pin them to a centimetre or two): an alignment that needed to move them far
@@ -540,13 +587,13 @@ class VisualLoopCloser:
         cross = float(np.linalg.norm(d - (d @ a) * a))
         if cross > cfg.visual_max_cross:
             self.rejected.append((i, k, f"moved {cross:.3f} m across the track"))
-            return None
+            return None, False
         Xc = host.transform_points(T, fi.X[pts[good]])
         x = Xc[:, :2] / Xc[:, 2:3]  # where the aligned patches' centres are
         fit = translation_only(fi.X[pts[good]], x, T, self.f)
         if fit is None:
             self.rejected.append((i, k, "singular"))
-            return None
+            return None, False
         T, keep, _, H_t = fit
         # information along the track only: the rotation was held at the prediction, and a
         # rotation error of a few tenths of a degree biases the lateral translation by
@@ -556,10 +603,10 @@ class VisualLoopCloser:
             var = float(a @ np.linalg.solve(H_t, a)) / (self.f**2 * cfg.visual_information_scale)
         except np.linalg.LinAlgError:
             self.rejected.append((i, k, "singular"))
-            return None
+            return None, False
         if var > cfg.visual_max_sigma**2:  # too few or badly placed patches to be worth the risk
             self.rejected.append((i, k, f"along-track sigma {np.sqrt(var):.3f} m"))
-            return None
+            return None, False
         info = np.diag(
             [1.0 / np.radians(cfg.visual_rotation_sigma_deg) ** 2] * 3 + [1.0 / cfg.visual_loose_sigma**2] * 3
         )
@@ -569,11 +616,13 @@ class VisualLoopCloser:
         info = axis_weighted(info, cfg.axis_weights)
         T_ik = self.T_bc @ host.inverse(T) @ self.T_cb  # body i <- body k
         T_est = host.inverse(poses[i]) @ poses[k]
-        ok, m2 = drift_gate(T_ik, info, T_est, travelled, dataclasses.replace(cfg, drift_per_m=cfg.visual_drift_per_m))
+        ok, m2 = drift_gate(T_ik, info, T_est, travelled, dataclasses.replace(cfg, drift_per_m=drift_per_m))
         if not ok:
             self.rejected.append((i, k, f"inconsistent with odometry (chi2 {m2:.1f})"))
-            return None
-        return VisualLoop(i, k, T_ik, info, len(keep), ncc.shape[1], float(np.mean(ncc_pts[good])), m2, blur)
+            return None, False
+        return VisualLoop(
+            i, k, T_ik, info, len(keep), ncc.shape[1], float(np.mean(ncc_pts[good])), m2, blur, drift_per_m
+        ), False
 
 
 def translation_only(

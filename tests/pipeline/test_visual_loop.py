@@ -122,7 +122,7 @@ def test_refuses_a_lookalike_stretch_the_estimate_puts_here(scene):
 
 @pytest.mark.parametrize("error", [0.28, -0.29])
 def test_a_drift_at_the_range_edge_does_not_hand_the_loop_to_an_alias(scene, error):
-    """Over 20 m the expected drift gives the smallest search range, 0.3 m; a prediction wrong
+    """Over 20 m at 0.5 %/m the expected drift gives the smallest search range, 0.3 m; a prediction wrong
     by nearly that much puts the true peak at the range's edge, where it cannot show as a
     peak, and an alias of the cable-tray rungs (0.3 m apart) inside it. The search reaches
     ``visual_alias_margin`` further, so the true peak is found and wins; with no margin the
@@ -132,7 +132,7 @@ def test_a_drift_at_the_range_edge_does_not_hand_the_loop_to_an_alias(scene, err
     T_true = host.inverse(T_old) @ T_cur
     along = {}
     for margin in (0.0, LoopConfig().visual_alias_margin):
-        closer = _closer(rig, visual_alias_margin=margin)
+        closer = _closer(rig, visual_alias_margin=margin, visual_drift_per_m=0.005)
         loops = closer.detect(_query(T_old, wrong, travelled=20.0), img_cur, {0: f_old}, {0: img_old})
         assert len(loops) == 1, closer.rejected
         along[margin] = abs(host.se3_log(host.inverse(loops[0].T) @ T_true)[3])
@@ -142,18 +142,87 @@ def test_a_drift_at_the_range_edge_does_not_hand_the_loop_to_an_alias(scene, err
 
 @pytest.mark.parametrize("error", [0.33, -0.5, 0.7])
 def test_a_drift_past_the_range_is_measured_or_refused_never_faked(scene, error):
-    """The prediction is wrong by more than the 0.3 m range. Just past it (0.33 m, within
-    ``visual_alias_margin``) the true peak is still found, beats the rung aliases inside and
-    passes the consistency gate (drift sigma 0.1 m here); at 0.5 m the gate refuses it; at
-    0.7 m, beyond the search, only aliases align and they tie. No alias is ever taken."""
+    """The prediction is wrong by more than the 0.3 m range (20 m at 0.5 %/m). Just past it
+    (0.33 m, within ``visual_alias_margin``) the true peak is still found, beats the rung
+    aliases inside and passes the consistency gate (drift sigma 0.1 m here); at 0.5 m the gate
+    refuses it; at 0.7 m, beyond the search, only aliases align and they tie. No alias is
+    ever taken."""
     rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
     wrong = T_cur @ host.make_pose(np.eye(3), np.array([error, 0.0, 0.0]))
-    closer = _closer(rig)
+    closer = _closer(rig, visual_drift_per_m=0.005)
     loops = closer.detect(_query(T_old, wrong, travelled=20.0), img_cur, {0: f_old}, {0: img_old})
     assert len(loops) == (1 if abs(error) < 0.4 else 0), closer.rejected
     for lp in loops:
         e = host.se3_log(host.inverse(lp.T) @ (host.inverse(T_old) @ T_cur))
         assert abs(e[3]) < 0.02
+
+
+def test_a_wide_search_follows_too_few_aligned_patches_only(scene, monkeypatch):
+    """The second search, at ``visual_wide_drift_per_m``, runs only where the first found too
+    few aligned patches (on dark seed 6's way back the estimate was 0.64 m off keyframes 15 m
+    back, past the 0.6 m searched) and only where it reaches further; the first search's
+    refusal is then not counted as a refused loop. Other refusals (ambiguous, inconsistent,
+    across the track) are final."""
+    rig = scene[0]
+    cfg = LoopConfig()
+    calls: list[float] = []
+
+    def stub(result, why):
+        def verify_at(self, i, k, fi, images, T_ki, travelled, poses, drift_per_m):
+            calls.append(drift_per_m)
+            if drift_per_m == cfg.visual_wide_drift_per_m and result is not None:
+                return result, False
+            self.rejected.append((i, k, why))
+            return None, why[0].isdigit()  # "N patches align": too few
+
+        return verify_at
+
+    found = object()
+    for why, travelled, expect_calls, expect in [
+        ("3 patches align", 15.0, [0.005, 0.01], found),  # too few: searched again, found
+        ("ambiguous: 30 and 28 patches align", 15.0, [0.005], None),
+        ("inconsistent with odometry (chi2 40.0)", 15.0, [0.005], None),
+        ("3 patches align", 300.0, [0.005], None),  # both ranges at visual_max_shift
+        ("3 patches align", 2.0, [0.005], None),  # both at visual_min_shift
+    ]:
+        calls.clear()
+        monkeypatch.setattr(VisualLoopCloser, "_verify_at", stub(found, why))
+        closer = _closer(rig)
+        assert closer._verify(0, 1, None, (None, None), np.eye(4), travelled, None) is expect, why
+        assert calls == expect_calls, why
+        assert closer.wide_searches == (len(expect_calls) - 1)
+        assert closer.rejected == ([] if expect is found else [(0, 1, why)])
+    monkeypatch.setattr(VisualLoopCloser, "_verify_at", stub(None, "3 patches align"))
+    closer = _closer(rig)
+    assert closer._verify(0, 1, None, (None, None), np.eye(4), 15.0, None) is None
+    assert closer.rejected == [(0, 1, "wide search: 3 patches align")]  # one refusal, the last
+    closer = _closer(rig, visual_wide_drift_per_m=0.0)
+    calls.clear()
+    assert closer._verify(0, 1, None, (None, None), np.eye(4), 15.0, None) is None and calls == [0.005]
+    assert closer.search_range(0.005, 15.0) == pytest.approx(0.6)
+    assert closer.search_range(0.01, 15.0) == pytest.approx(0.75)
+
+
+def test_a_dark_wide_search_never_takes_an_alias(frames):
+    """Dark frames (mean grey level 5), the prediction 0.55 m off over 15 m: the first search
+    aligns too few patches, the wide one is run and finds the rung aliases tied with the
+    truth, so nothing is accepted; where the first search finds the loop (0.2 m off, bright),
+    no second search runs."""
+    rig, front, ((_, img_old, T_old, body_old), (_, img_cur, T_cur, _), _) = frames
+    dark_old, dark_cur = _darken(img_old, 1, 5.0), _darken(img_cur, 2, 5.0)
+    f_dark = front.features(0, 0.0, dark_old, body_old)
+    wrong = T_cur @ host.make_pose(np.eye(3), np.array([0.55, 0.0, 0.0]))
+    closer = _closer(rig)
+    assert closer.detect(_query(T_old, wrong, travelled=15.0), dark_cur, {0: f_dark}, {0: dark_old}) == []
+    assert closer.wide_searches == 1 and len(closer.rejected) == 1
+    assert closer.rejected[0][2].startswith("wide search:")
+    f_old = front.features(0, 0.0, img_old, body_old)
+    wrong = T_cur @ host.make_pose(np.eye(3), np.array([0.2, 0.0, 0.0]))
+    closer = _closer(rig)
+    loops = closer.detect(_query(T_old, wrong, travelled=15.0), img_cur, {0: f_old}, {0: img_old})
+    assert len(loops) == 1 and closer.wide_searches == 0
+    assert loops[0].drift_per_m == LoopConfig().visual_drift_per_m
+    assert abs(host.se3_log(host.inverse(loops[0].T) @ (host.inverse(T_old) @ T_cur))[3]) < 0.02
 
 
 def test_not_due_without_vision_loops_or_at_the_first_keyframe(scene):

@@ -85,7 +85,16 @@ def test_off_accepts_at_once():
     assert c.confirm(_query(10), [lp]) == [lp] and c.accepted == [lp]
 
 
-@pytest.mark.parametrize("key", ["visual_confirm_m", "visual_confirm_tol", "visual_confirm_drift_per_m"])
+@pytest.mark.parametrize(
+    "key",
+    [
+        "visual_confirm_m",
+        "visual_confirm_tol",
+        "visual_confirm_drift_per_m",
+        "visual_wide_drift_per_m",
+        "visual_drift_per_m",
+    ],
+)
 def test_bad_values_are_config_errors(tmp_path, key):
     p = tmp_path / "c.yaml"
     p.write_text(f"loop:\n  {key}: -1\n")
