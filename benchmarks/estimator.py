@@ -120,6 +120,8 @@ def main() -> None:
                             "loops_accepted",
                             "visual_loops_accepted",
                             "visual_loops_blurred",
+                            "visual_loops_wide",
+                            "visual_loop_wide_searches",
                             "loops_rejected",
                             "loops_false",
                             "keyframes",
