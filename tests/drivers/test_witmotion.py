@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import select
 import threading
 import time
 
@@ -292,19 +293,29 @@ def test_serial_samples_over_pty(pty):
         assert dev.timeouts >= 2 and time.monotonic() - t0 < 2.0
 
 
+def _read_exactly(fd: int, n: int, timeout: float = 5.0) -> bytes:
+    """Read n bytes from fd: a pty may hand back one write per read."""
+    got = b""
+    deadline = time.monotonic() + timeout
+    while len(got) < n:
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            break
+        got += os.read(fd, n - len(got))
+    return got
+
+
 def test_serial_configure_writes_documented_bytes(pty):
     master, path = pty
     with WitMotionSerial(path, 115200, timeout=0.05) as dev:
         sent = dev.configure(200, pause=0.0)
         assert sent == [UNLOCK, rate_command(200), SAVE]
-        assert os.read(master, 1024) == UNLOCK + bytes.fromhex("FFAA030B00") + SAVE
+        first = UNLOCK + bytes.fromhex("FFAA030B00") + SAVE
+        assert _read_exactly(master, len(first)) == first
         sent = dev.configure(200, baud=230400, pause=0.0)
         expected = [UNLOCK, rate_command(200), SAVE, UNLOCK, bytes.fromhex("FFAA040700"), UNLOCK, SAVE]
         assert sent == expected
-        got = b""
-        while len(got) < 35:
-            got += os.read(master, 1024)
-        assert got == b"".join(expected)
+        assert _read_exactly(master, 35) == b"".join(expected)
         assert dev.serial.baudrate == 230400 and dev.parser.byte_time == pytest.approx(10 / 230400)
         with pytest.raises(ConfigError):
             dev.configure(200, baud=9600, pause=0.0)  # 200 Hz does not fit 9600 baud
