@@ -375,6 +375,13 @@ class LoopConfig:
     them again on images blurred by this much (Gaussian, px; 0 = off). In a dark stretch
     (mean grey level ~4 at full gain) the sensor noise caps a true patch's NCC on sharp
     images well below ``visual_min_ncc``; a 1 px blur lifts it (see README)."""
+    visual_dim_blur_rungs: int = 1
+    """How many blurs the dim retry climbs: rung r aligns on images blurred by r x
+    ``visual_dim_blur_px``, tried only when the rung before aligned too few patches."""
+    visual_blur_noise_px: float = 0.0
+    """A visual loop aligned on images blurred by b px gets its along-track variance
+    multiplied by 1 + (b / this)^2 (0 = no inflation): a blurred patch's NCC peak is wider,
+    so its centre is found less precisely than the sharp-image reprojection Hessian says."""
     visual_search_spacing_px: float = 3.0
     """The search along the track compares blurred images (Gaussian, px) with patches spaced
     this far apart (px in the old image): coarse, so that the prediction's error across the
@@ -517,6 +524,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected an integer, got {v!r}")
             if k == "anchor_gap_scans" and v < 0:
                 raise ConfigError(f"{where}.{k}: expected a number of scans >= 0, got {v!r}")
+            if k == "visual_dim_blur_rungs" and v < 0:
+                raise ConfigError(f"{where}.{k}: expected a number of blur rungs >= 0 (0 = off), got {v!r}")
         elif isinstance(default, float):
             if isinstance(v, bool) or not isinstance(v, int | float):
                 raise ConfigError(f"{where}.{k}: expected a number, got {v!r}")
@@ -541,7 +550,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a multiplier > 0, got {v!r}")
             if k == "zupt_hold_sigma" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a sigma >= 0 (m, 0 = off), got {v!r}")
-            if k in ("visual_dim_blur_px", "visual_blur_px") and not (np.isfinite(v) and v >= 0):
+            blurs = ("visual_dim_blur_px", "visual_blur_px", "visual_blur_noise_px")
+            if k in blurs and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a blur >= 0 (px, 0 = none), got {v!r}")
         elif isinstance(default, str):
             if not isinstance(v, str):

@@ -34,7 +34,8 @@ by the estimate and photometric:
    prediction); the one with the most patches above ``visual_min_ncc`` wins. When none
    aligns ``visual_min_inliers`` patches on the sharp images (a dark stretch, where the
    sensor noise caps a true patch's NCC), all are aligned again on images blurred by
-   ``visual_dim_blur_px``;
+   ``visual_dim_blur_px`` (and, with ``visual_dim_blur_rungs`` above 1, by twice, three
+   times that, each rung only where the one before still aligned too few);
 4. acceptance: at least ``visual_min_inliers`` such patches, no runner-up hypothesis with
    more than ``visual_peak_ratio`` of the winner's (a periodic structure: tray rungs,
    brackets),
@@ -43,9 +44,10 @@ by the estimate and photometric:
    against the estimate as LiDAR loops.
 
 The factor measures the translation along the track only (sigma from the aligned patch
-centres' reprojection Hessian times ``visual_information_scale``), with the rotation and the
-other translations loose (``visual_rotation_sigma_deg``, ``visual_loose_sigma``): the rotation
-was held, and a few tenths of a degree of rotation error move the lateral estimate by
+centres' reprojection Hessian times ``visual_information_scale``; with
+``visual_blur_noise_px`` set, a loop aligned on blurred images gets a larger variance), with
+the rotation and the other translations loose (``visual_rotation_sigma_deg``,
+``visual_loose_sigma``): the rotation was held, and a few tenths of a degree of rotation error move the lateral estimate by
 centimetres but not the along-track one. Loop factors carry a Cauchy kernel in the graph.
 Everything here is numpy / OpenCV on the host; it runs in the vision worker beside the
 keyframe's own features.
@@ -561,11 +563,13 @@ class VisualLoopCloser:
         hyps = self.hypotheses(shifts, ncc)
         tried = self._align_hypotheses(fi, pts, images, T_ki, hyps, reach, 0.0)
         blur = 0.0
-        if (not tried or tried[0][0] < cfg.visual_min_inliers) and cfg.visual_dim_blur_px > 0 and hyps:
+        for rung in range(1, cfg.visual_dim_blur_rungs + 1):
+            if (tried and tried[0][0] >= cfg.visual_min_inliers) or cfg.visual_dim_blur_px <= 0 or not hyps:
+                break
             # too few patches align on the sharp images: in a dark stretch the sensor noise
             # (a few grey levels at full gain) caps a true patch's NCC well below the
-            # threshold, so the alignment is tried again on slightly blurred images
-            blur = cfg.visual_dim_blur_px
+            # threshold, so the alignment is tried again on blurred images, more each rung
+            blur = rung * cfg.visual_dim_blur_px
             tried = self._align_hypotheses(fi, pts, images, T_ki, hyps, reach, blur)
         self.last_hypotheses = [(n, moved) for n, moved, *_ in tried]  # (patches aligned, shift m), best first
         if not tried or tried[0][0] < cfg.visual_min_inliers:
@@ -601,6 +605,8 @@ class VisualLoopCloser:
         # yaw error); LiDAR measures the other directions better anyway
         try:
             var = float(a @ np.linalg.solve(H_t, a)) / (self.f**2 * cfg.visual_information_scale)
+            if cfg.visual_blur_noise_px > 0:  # a blurred NCC peak is wider: its centre less sure
+                var *= 1.0 + (blur / cfg.visual_blur_noise_px) ** 2
         except np.linalg.LinAlgError:
             self.rejected.append((i, k, "singular"))
             return None, False

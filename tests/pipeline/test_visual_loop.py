@@ -337,6 +337,52 @@ def test_dark_frames_align_on_slightly_blurred_images_and_never_to_an_alias(fram
     assert accepted and all(lp.blur_px == LoopConfig().visual_dim_blur_px for lp in accepted)
 
 
+def test_the_dim_retry_climbs_its_blur_rungs_and_inflates_the_blurred_variance(scene, monkeypatch):
+    """``visual_dim_blur_rungs``: where the sharp images and every rung before align too few
+    patches, rung r aligns on images blurred by r x ``visual_dim_blur_px``; the rungs stop at
+    the first that aligns enough. ``visual_blur_noise_px``: a loop aligned at b px blur gets
+    its along-track variance times 1 + (b / noise)^2. Here the sharp and the 1 px alignments
+    are made to fail (a bright scene 0.2 m off, where every rung aligns the true shift; blur
+    lets the alias 0.28 m further align nearly as well, so ``visual_peak_ratio`` is raised
+    here to let the blurred loop through)."""
+    rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
+    wrong = T_cur @ host.make_pose(np.eye(3), np.array([0.2, 0.0, 0.0]))
+    T_true = host.inverse(T_old) @ T_cur
+    real = VisualLoopCloser._align_hypotheses
+    blurs: list[float] = []
+
+    def below(limit: float):
+        def align(self, fi, pts, images, T_ki, hyps, reach, blur):
+            blurs.append(blur)
+            return real(self, fi, pts, images, T_ki, hyps, reach, blur) if blur >= limit else []
+
+        return align
+
+    def run(limit: float, **changes):
+        blurs.clear()
+        monkeypatch.setattr(VisualLoopCloser, "_align_hypotheses", below(limit))
+        closer = _closer(rig, visual_wide_drift_per_m=0.0, visual_peak_ratio=0.95, **changes)
+        return closer.detect(_query(T_old, wrong, travelled=15.0), img_cur, {0: f_old}, {0: img_old}), list(blurs)
+
+    loops, tried = run(2.0, visual_dim_blur_rungs=1)
+    assert loops == [] and tried == [0.0, 1.0]  # one rung: the 2 px alignment is never tried
+    loops, tried = run(2.0, visual_dim_blur_rungs=2)
+    assert tried == [0.0, 1.0, 2.0] and len(loops) == 1 and loops[0].blur_px == 2.0
+    assert abs(host.se3_log(host.inverse(loops[0].T) @ T_true)[3]) < 0.02
+    assert run(0.0, visual_dim_blur_rungs=3)[1] == [0.0]  # the sharp images align: no rung
+    assert run(1.0, visual_dim_blur_rungs=3)[1] == [0.0, 1.0]  # stops at the first that aligns
+    assert run(0.0, visual_dim_blur_rungs=0)[1] == [0.0] and run(9.0, visual_dim_blur_rungs=0)[0] == []
+    loose = run(2.0, visual_dim_blur_rungs=2, visual_blur_noise_px=1.0)[0]
+    loose_sharp = run(0.0, visual_blur_noise_px=1.0)[0]
+    sharp = run(0.0)[0]
+
+    def along_info(lp) -> float:  # the along-track part: body x of the newer keyframe
+        return lp.information[3, 3] - 1.0 / LoopConfig().visual_loose_sigma ** 2
+
+    assert along_info(loops[0]) == pytest.approx(5.0 * along_info(loose[0]), rel=1e-9)  # 1 + (2 / 1)^2
+    assert along_info(loose_sharp[0]) == pytest.approx(along_info(sharp[0]), rel=1e-12)  # sharp: untouched
+
+
 def test_a_dark_lookalike_is_refused_on_blurred_images_too(frames):
     """The blurred retry must not make the 7 m look-alike (see above) align: dark frames, the
     estimate wrongly putting the far keyframe here, no loop."""
