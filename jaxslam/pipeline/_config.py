@@ -278,6 +278,14 @@ class VisionConfig:
     made the scale one number per run: right where the whole run is dark (dark seed 0 loop
     error 0.037 -> 0.007 m), wrong where the bias changes with the light (uneven seeds 0 / 3:
     0.027 / 0.012 -> 0.046 / 0.038 m); kept at 0.001."""
+    scale_revert_m: float = 0.0
+    """Mean reversion of the log scale (m; 0 = off, a pure random walk): each keyframe's log
+    scale also gets a prior towards 0 (the depth-calibrated length) of sigma
+    ``scale_revert_m * scale_walk_sigma / sqrt(step)``, so that where nothing else measures
+    lengths the scale returns to 1 over about this many metres (a first-order Gauss-Markov
+    process) instead of keeping a bias learned from an earlier, darker stretch: on dark seed
+    14 the last 8 m home, with no loop possible, inherited a log scale of -0.0055 from the
+    dark return leg and came out 6 cm short while the visual odometry there was right."""
     direction_fallback: bool = False
     """Where features have no LiDAR depth, add a scale-free factor (rotation + translation
     direction from the essential matrix, ``RelativeDirectionFactor``) instead of nothing.
@@ -550,6 +558,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a multiplier > 0, got {v!r}")
             if k == "zupt_hold_sigma" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a sigma >= 0 (m, 0 = off), got {v!r}")
+            if k == "scale_revert_m" and not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"{where}.{k}: expected a length >= 0 (m, 0 = off), got {v!r}")
             blurs = ("visual_dim_blur_px", "visual_blur_px", "visual_blur_noise_px")
             if k in blurs and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a blur >= 0 (px, 0 = none), got {v!r}")

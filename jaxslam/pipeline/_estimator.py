@@ -438,6 +438,12 @@ class Estimator:
                 factors.append(
                     self._tag("scale", BetweenFactor.create(ScaleVar(ids[0]), ScaleVar(ids[1]), np.zeros(1), walk))
                 )
+                # mean reversion: where nothing measures lengths, the scale returns towards 1
+                revert = self.cfg.vision.scale_revert_m
+                if revert > 0 and self.cfg.vision.scale_walk_sigma > 0:
+                    sigma = revert * self.cfg.vision.scale_walk_sigma / np.sqrt(step)
+                    pull = PriorFactor.create(ScaleVar(ids[1]), np.zeros(1), Gaussian.isotropic(1, sigma))
+                    factors.append(self._tag("scale", pull))
             if (
                 scan is not None
                 and prev.scan is not None

@@ -47,10 +47,10 @@ The factor measures the translation along the track only (sigma from the aligned
 centres' reprojection Hessian times ``visual_information_scale``; with
 ``visual_blur_noise_px`` set, a loop aligned on blurred images gets a larger variance), with
 the rotation and the other translations loose (``visual_rotation_sigma_deg``,
-``visual_loose_sigma``): the rotation was held, and a few tenths of a degree of rotation error move the lateral estimate by
-centimetres but not the along-track one. Loop factors carry a Cauchy kernel in the graph.
-Everything here is numpy / OpenCV on the host; it runs in the vision worker beside the
-keyframe's own features.
+``visual_loose_sigma``): the rotation was held, and a few tenths of a degree of rotation
+error move the lateral estimate by centimetres but not the along-track one. Loop factors
+carry a Cauchy kernel in the graph. Everything here is numpy / OpenCV on the host; it runs in
+the vision worker beside the keyframe's own features.
 """
 
 from __future__ import annotations

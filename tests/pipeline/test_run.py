@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from jaxslam import eval as ev
+from jaxslam.core import ScaleVar
 from jaxslam.io import Trajectory, open_recording, read_ply
 from jaxslam.lie import SE3, host
 from jaxslam.measurements import PoseStamped
@@ -158,6 +159,36 @@ def test_length_sigma_softens_only_where_the_lidar_is_anchored(records, config, 
     off, _, ape = _run(records, config.replace(vision={"length_sigma_ratio": 0.0}))
     assert off.length_softened == 0
     assert ape < baseline[2] + 0.05 and baseline[2] < ape + 0.05, (ape, baseline[2])
+
+
+def _scale_priors(est: Estimator) -> list[tuple[int, float]]:
+    """(keyframe, sigma) of every prior on a visual length scale in the estimator's graph."""
+    out = []
+    for kind, f in est.graph:
+        if kind == "scale" and type(f).__name__ == "PriorFactor":
+            sigma = 1.0 / np.abs(np.asarray(f.noise.sqrt_info)[:, 0, 0])
+            out += list(zip(np.asarray(f.variables[0].ids).tolist(), sigma.tolist()))
+    return sorted(out)
+
+
+def test_scale_mean_reversion_pulls_each_keyframes_scale_towards_one(records, config, baseline) -> None:
+    """``vision.scale_revert_m`` (0 = off, the default): every keyframe's log scale after the
+    first gets a prior towards 0 of sigma ``scale_revert_m * scale_walk_sigma / sqrt(step)``
+    (a first-order Gauss-Markov scale); the run stays accurate and its scales are no further
+    from 1 than without."""
+    assert config.vision.scale_revert_m == 0.0
+    assert [k for k, _ in _scale_priors(baseline[0])] == [0]  # off: the first keyframe's only
+    est, res, ape = _run(records, config.replace(vision={"scale_revert_m": 5.0}))
+    priors = _scale_priors(est)
+    assert [k for k, _ in priors] == list(range(len(est.keyframes)))
+    walk = config.vision.scale_walk_sigma
+    for k, sigma in priors[1:]:
+        step = max(float(np.linalg.norm(res["poses"][k][:3, 3] - res["poses"][k - 1][:3, 3])), 0.05)
+        assert sigma == pytest.approx(5.0 * walk / np.sqrt(step), rel=0.3), (k, sigma)  # predicted step
+    assert ape < baseline[2] + 0.02, (ape, baseline[2])
+    on = np.abs(np.asarray(est.solver.estimate().params(ScaleVar))).max()
+    off = np.abs(np.asarray(baseline[0].solver.estimate().params(ScaleVar))).max()
+    assert on <= off + 1e-4, (on, off)
 
 
 def test_loop_factors_carry_their_kinds_kernel_scale(baseline, config) -> None:
