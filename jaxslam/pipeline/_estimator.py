@@ -106,6 +106,11 @@ def _between(i: int, j: int, T: np.ndarray, info: np.ndarray, robust=None) -> Be
     )
 
 
+RUN_SCALE_ID = 1_000_000_000
+"""Id of the run-wide :class:`~jaxslam.core.ScaleVar` (``vision.scale_revert_to = "run"``);
+the keyframes' log scales have their keyframe indices (all smaller)."""
+
+
 def visual_odometry_factor(
     i: int, j: int, T: np.ndarray, info: np.ndarray, scaled: bool, kernel: str = "huber", kernel_scale: float = 0.0
 ) -> Factor:
@@ -153,6 +158,13 @@ class Estimator:
             LoopCloser(config.loop, self.T_bl, config.lidar) if (config.loop.enabled and config.lidar.enabled) else None
         )
         self._scaled_vision = self.visual is not None and config.vision.scale_variable
+        vcfg = config.vision
+        self._scale_to_run = (
+            self._scaled_vision
+            and vcfg.scale_revert_m > 0
+            and vcfg.scale_walk_sigma > 0
+            and vcfg.scale_revert_to == "run"
+        )
         self.visual_loops = (
             VisualLoopCloser(
                 config.loop, self.visual.T_bc, self.visual.f, rig.camera_size, rig.K(), rig.camera_distortion
@@ -394,6 +406,14 @@ class Estimator:
                     ScaleVar(np.array([0])), np.zeros(1), Gaussian.isotropic(1, self.cfg.vision.scale_prior_sigma)
                 )
                 factors.append(self._tag("scale", s_prior))
+                if self._scale_to_run:  # the run-wide log scale the keyframes' revert to
+                    values[ScaleVar(np.array([RUN_SCALE_ID]))] = np.zeros((1, 1))
+                    g_prior = PriorFactor.create(
+                        ScaleVar(np.array([RUN_SCALE_ID])),
+                        np.zeros(1),
+                        Gaussian.isotropic(1, self.cfg.vision.scale_prior_sigma),
+                    )
+                    factors.append(self._tag("scale", g_prior))
         else:
             prev = self.keyframes[-1]
             acc, gyro, dt, gap = self.imu.interval(prev.t, t)
@@ -441,8 +461,13 @@ class Estimator:
                 # mean reversion: where nothing measures lengths, the scale returns towards 1
                 revert = self.cfg.vision.scale_revert_m
                 if revert > 0 and self.cfg.vision.scale_walk_sigma > 0:
-                    sigma = revert * self.cfg.vision.scale_walk_sigma / np.sqrt(step)
-                    pull = PriorFactor.create(ScaleVar(ids[1]), np.zeros(1), Gaussian.isotropic(1, sigma))
+                    noise = Gaussian.isotropic(1, revert * self.cfg.vision.scale_walk_sigma / np.sqrt(step))
+                    pull: Factor
+                    if self._scale_to_run:
+                        run = ScaleVar(np.array([RUN_SCALE_ID]))
+                        pull = BetweenFactor.create(run, ScaleVar(ids[1]), np.zeros(1), noise)
+                    else:
+                        pull = PriorFactor.create(ScaleVar(ids[1]), np.zeros(1), noise)
                     factors.append(self._tag("scale", pull))
             if (
                 scan is not None
@@ -457,6 +482,7 @@ class Estimator:
                         self.T_bl,
                         self.cfg.lidar,
                         self.cfg.lidar.information_scale,
+                        self.cfg.lidar.min_sigma_axis,
                     ),
                     self.cfg.lidar.axis_weights,
                 )

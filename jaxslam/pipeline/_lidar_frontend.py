@@ -48,7 +48,9 @@ class ScanResult:
     """Relative reflectivity of ``points`` (N,), NaN where none; None without intensity."""
 
 
-def information_for_factor(info_lidar: np.ndarray, T_bl: np.ndarray, cfg: LidarConfig, scale: float) -> np.ndarray:
+def information_for_factor(
+    info_lidar: np.ndarray, T_bl: np.ndarray, cfg: LidarConfig, scale: float, axis_sigma: float = 0.0
+) -> np.ndarray:
     """Registration information (LiDAR tangent) -> body-tangent information for a between
     factor: conjugated by the extrinsic, scaled, regularised so a direction the scan does not
     see gets sigma ``cfg.degenerate_sigma``, and capped by the sigma floors. Callers pass
@@ -60,6 +62,8 @@ def information_for_factor(info_lidar: np.ndarray, T_bl: np.ndarray, cfg: LidarC
     cov = np.linalg.inv(info)
     floor = np.array([cfg.min_sigma_rot] * 3 + [cfg.min_sigma_trans] * 3) ** 2
     cov = cov + np.diag(floor)
+    if axis_sigma > 0:  # body x: the direction of travel
+        cov[3, 3] += axis_sigma**2
     out = np.linalg.inv(cov)
     return 0.5 * (out + out.T)
 

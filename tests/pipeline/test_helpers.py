@@ -987,3 +987,27 @@ def test_length_sigma_adds_variance_along_the_translation_only():
     z -= (z @ iu) / (iu @ iu) * iu  # orthogonal to info @ u
     assert z @ out @ z == pytest.approx(z @ info @ z, rel=1e-9)
     np.testing.assert_array_equal(with_length_sigma(info, np.zeros(3), 0.01), info)  # no motion: unchanged
+
+
+def test_lidar_axis_sigma_adds_variance_along_body_x_only():
+    """``lidar.min_sigma_axis``: the odometry factor's covariance is the registration's (through
+    the extrinsic, scaled, regularised, floored) plus ``sigma^2`` on body-x translation and
+    nothing else; the LiDAR loops' information (no ``axis_sigma``) is unchanged."""
+    from jaxslam.pipeline._config import LidarConfig
+    from jaxslam.pipeline._lidar_frontend import information_for_factor
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(6, 6))
+    info_l = 1e4 * (A @ A.T) + np.eye(6)
+    T_bl = host.se3_exp(np.array([0.02, -0.1, 0.3, 0.2, 0.0, 0.1]))
+    cfg = LidarConfig()
+    assert cfg.min_sigma_axis == 0.0  # off by default
+    plain = information_for_factor(info_l, T_bl, cfg, 0.1)
+    with_axis = information_for_factor(info_l, T_bl, cfg, 0.1, 0.015)
+    diff = np.linalg.inv(with_axis) - np.linalg.inv(plain)
+    expect = np.zeros((6, 6))
+    expect[3, 3] = 0.015**2
+    np.testing.assert_allclose(diff, expect, atol=1e-12)
+    np.testing.assert_array_equal(information_for_factor(info_l, T_bl, cfg, 0.1, 0.0), plain)
+    with pytest.raises(ConfigError, match="min_sigma_axis"):
+        config_from_dict({"lidar": {"min_sigma_axis": -0.01}})

@@ -191,6 +191,35 @@ def test_scale_mean_reversion_pulls_each_keyframes_scale_towards_one(records, co
     assert on <= off + 1e-4, (on, off)
 
 
+def test_scale_reverts_to_a_run_wide_scale_the_graph_estimates(records, config, baseline) -> None:
+    """``vision.scale_revert_to = "run"``: the keyframes' log scales revert to one more
+    ScaleVar (id ``RUN_SCALE_ID``, the first keyframe's prior) instead of to 0, through a
+    between factor each of the same sigma. That variable only enters linear factors, so at the
+    end it is exactly the precision-weighted mean of the keyframes' log scales (its prior's
+    mean 0 counted once): the closed form of its own normal equation."""
+    from jaxslam.pipeline._estimator import RUN_SCALE_ID
+
+    est, res, ape = _run(records, config.replace(vision={"scale_revert_m": 5.0, "scale_revert_to": "run"}))
+    assert [k for k, _ in _scale_priors(est)] == [0, RUN_SCALE_ID]  # the run scale's and the first's
+    pulls = {}
+    for kind, f in est.graph:
+        if kind == "scale" and type(f).__name__ == "BetweenFactor":
+            a, b = (np.asarray(v.ids).tolist() for v in f.variables)
+            sigma = (1.0 / np.abs(np.asarray(f.noise.sqrt_info)[:, 0, 0])).tolist()
+            pulls.update({j: s for i, j, s in zip(a, b, sigma) if i == RUN_SCALE_ID})
+    assert sorted(pulls) == list(range(1, len(est.keyframes)))
+    walk = config.vision.scale_walk_sigma
+    for k, sigma in pulls.items():
+        step = max(float(np.linalg.norm(res["poses"][k][:3, 3] - res["poses"][k - 1][:3, 3])), 0.05)
+        assert sigma == pytest.approx(5.0 * walk / np.sqrt(step), rel=0.3), (k, sigma)
+    value = {k: float(est.solver.value(ScaleVar, k)[0]) for k in [RUN_SCALE_ID, *pulls]}
+    w = {k: 1.0 / s**2 for k, s in pulls.items()}
+    expect = sum(w[k] * value[k] for k in w) / (1.0 / config.vision.scale_prior_sigma**2 + sum(w.values()))
+    assert value[RUN_SCALE_ID] == pytest.approx(expect, rel=1e-6, abs=1e-9)
+    assert abs(value[RUN_SCALE_ID]) > 1e-6  # it moved: the data pulls it
+    assert ape < baseline[2] + 0.02, (ape, baseline[2])
+
+
 def test_loop_factors_carry_their_kinds_kernel_scale(baseline, config) -> None:
     """LiDAR and visual loops share one factor group, so each loop factor holds its Cauchy
     scale per constraint: ``loop.cauchy_scale`` on LiDAR loops, ``loop.visual_cauchy_scale``
