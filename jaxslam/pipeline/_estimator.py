@@ -401,19 +401,13 @@ class Estimator:
             b_prior = PriorFactor.create(BiasVar(np.array([0])), pred.bias[None], Gaussian.diagonal(jnp.asarray(bsig)))
             factors.append(self._tag("prior", b_prior))
             if self._scaled_vision:
-                values[ScaleVar(np.array([0]))] = np.zeros((1, 1))
-                s_prior = PriorFactor.create(
-                    ScaleVar(np.array([0])), np.zeros(1), Gaussian.isotropic(1, self.cfg.vision.scale_prior_sigma)
-                )
-                factors.append(self._tag("scale", s_prior))
-                if self._scale_to_run:  # the run-wide log scale the keyframes' revert to
-                    values[ScaleVar(np.array([RUN_SCALE_ID]))] = np.zeros((1, 1))
-                    g_prior = PriorFactor.create(
-                        ScaleVar(np.array([RUN_SCALE_ID])),
-                        np.zeros(1),
-                        Gaussian.isotropic(1, self.cfg.vision.scale_prior_sigma),
+                # the first keyframe's log scale, and the run-wide one the keyframes revert to
+                for sid in [0, RUN_SCALE_ID] if self._scale_to_run else [0]:
+                    values[ScaleVar(np.array([sid]))] = np.zeros((1, 1))
+                    s_prior = PriorFactor.create(
+                        ScaleVar(np.array([sid])), np.zeros(1), Gaussian.isotropic(1, self.cfg.vision.scale_prior_sigma)
                     )
-                    factors.append(self._tag("scale", g_prior))
+                    factors.append(self._tag("scale", s_prior))
         else:
             prev = self.keyframes[-1]
             acc, gyro, dt, gap = self.imu.interval(prev.t, t)

@@ -1011,3 +1011,5 @@ def test_lidar_axis_sigma_adds_variance_along_body_x_only():
     np.testing.assert_array_equal(information_for_factor(info_l, T_bl, cfg, 0.1, 0.0), plain)
     with pytest.raises(ConfigError, match="min_sigma_axis"):
         config_from_dict({"lidar": {"min_sigma_axis": -0.01}})
+    with pytest.raises(ConfigError, match="scale_revert_to"):
+        config_from_dict({"vision": {"scale_revert_to": "mean"}})
