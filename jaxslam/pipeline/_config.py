@@ -188,6 +188,14 @@ class VisionConfig:
     median of 12 % aligned on the way out and 51 % in the dark stretch of the way back (95 %
     in lit stretches), and fitting on those few made that stretch's visual lengths 4 % short
     (1 % with the detections)."""
+    patch_half: int = 6
+    """Half-size of the aligned patches ((2 half + 1)^2 pixels)."""
+    patch_min_ncc: float = 0.7
+    """A patch counts as aligned above this normalised cross-correlation. In the dark the
+    sensor noise caps a true patch's NCC; larger patches raise it (see README: on dark seed
+    12's darkest stretch, 15 % of 13x13 patches pass 0.7, 43 % of 21x21 patches pass 0.5, both
+    within 0.05 px of the true position in the median, where the detections sit 0.5 px
+    inwards)."""
     ratio: float = 0.8
     ransac_threshold_px: float = 1.0
     min_inliers: int = 15
@@ -546,6 +554,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
         elif isinstance(default, int):
             if isinstance(v, bool) or not isinstance(v, int):
                 raise ConfigError(f"{where}.{k}: expected an integer, got {v!r}")
+            if k == "patch_half" and v < 1:
+                raise ConfigError(f"{where}.{k}: expected a patch half-size >= 1 (px), got {v!r}")
             if k == "anchor_gap_scans" and v < 0:
                 raise ConfigError(f"{where}.{k}: expected a number of scans >= 0, got {v!r}")
             if k == "visual_dim_blur_rungs" and v < 0:
@@ -568,6 +578,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a drift >= 0 (m per m), got {v!r}")
             if k == "odometry_kernel_scale" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a kernel scale >= 0 (whitened, 0 = off), got {v!r}")
+            if k == "patch_min_ncc" and not (np.isfinite(v) and -1 <= v <= 1):
+                raise ConfigError(f"{where}.{k}: expected a correlation in [-1, 1], got {v!r}")
             if k == "patch_min_fraction" and not (np.isfinite(v) and 0 <= v <= 1):
                 raise ConfigError(f"{where}.{k}: expected a fraction in [0, 1], got {v!r}")
             if k == "guided_information_scale" and not (np.isfinite(v) and v > 0):

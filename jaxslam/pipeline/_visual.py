@@ -330,7 +330,18 @@ class VisualFrontend:
             return None
         ia, ib = ia[usable], ib[usable]
         dist = self.rig.camera_distortion
-        uv, ok = align_patches(a.image, b.image, a.uv[ia], a.X[ia], a.normal[ia], T_cbca, self.K, dist)
+        uv, ok = align_patches(
+            a.image,
+            b.image,
+            a.uv[ia],
+            a.X[ia],
+            a.normal[ia],
+            T_cbca,
+            self.K,
+            dist,
+            cfg.patch_half,
+            min_ncc=cfg.patch_min_ncc,
+        )
         if ok.sum() < max(cfg.min_inliers, cfg.patch_min_fraction * len(ok)):
             return None
         ia, ib = ia[ok], ib[ok]
