@@ -196,6 +196,12 @@ class VisionConfig:
     12's darkest stretch, 15 % of 13x13 patches pass 0.7, 43 % of 21x21 patches pass 0.5, both
     within 0.05 px of the true position in the median, where the detections sit 0.5 px
     inwards)."""
+    patch_retry_half: int = 0
+    """When too few patches align, align again with patches of this half-size (0 = no retry),
+    ``patch_retry_min_ncc`` and ``patch_retry_min_fraction``: only the keyframe pairs whose
+    alignment fails change, so lit stretches keep their result."""
+    patch_retry_min_ncc: float = 0.5
+    patch_retry_min_fraction: float = 0.4
     ratio: float = 0.8
     ransac_threshold_px: float = 1.0
     min_inliers: int = 15
@@ -556,6 +562,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected an integer, got {v!r}")
             if k == "patch_half" and v < 1:
                 raise ConfigError(f"{where}.{k}: expected a patch half-size >= 1 (px), got {v!r}")
+            if k == "patch_retry_half" and v < 0:
+                raise ConfigError(f"{where}.{k}: expected a patch half-size >= 0 (px, 0 = no retry), got {v!r}")
             if k == "anchor_gap_scans" and v < 0:
                 raise ConfigError(f"{where}.{k}: expected a number of scans >= 0, got {v!r}")
             if k == "visual_dim_blur_rungs" and v < 0:
@@ -578,9 +586,9 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a drift >= 0 (m per m), got {v!r}")
             if k == "odometry_kernel_scale" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a kernel scale >= 0 (whitened, 0 = off), got {v!r}")
-            if k == "patch_min_ncc" and not (np.isfinite(v) and -1 <= v <= 1):
+            if k in ("patch_min_ncc", "patch_retry_min_ncc") and not (np.isfinite(v) and -1 <= v <= 1):
                 raise ConfigError(f"{where}.{k}: expected a correlation in [-1, 1], got {v!r}")
-            if k == "patch_min_fraction" and not (np.isfinite(v) and 0 <= v <= 1):
+            if k in ("patch_min_fraction", "patch_retry_min_fraction") and not (np.isfinite(v) and 0 <= v <= 1):
                 raise ConfigError(f"{where}.{k}: expected a fraction in [0, 1], got {v!r}")
             if k == "guided_information_scale" and not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"{where}.{k}: expected a multiplier > 0, got {v!r}")

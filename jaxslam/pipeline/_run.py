@@ -218,6 +218,7 @@ def run_recording(
         "guided_visual_factors": est.visual.guided_fits if est.visual else 0,
         "wide_gate_visual_factors": est.visual.wide_fits if est.visual else 0,
         "patch_refined_visual_factors": est.visual.patch_refined if est.visual else 0,
+        "patch_retried_visual_factors": est.visual.patch_retried if est.visual else 0,
         "mapping": stats,
         "timing_s": {k: round(v, 3) for k, v in est.timing.items()},
         "machine": machine_info(),

@@ -179,6 +179,8 @@ class VisualFrontend:
         """Relative poses fitted at ``vision.wide_inlier_px`` (the 2 px fit had failed)."""
         self.patch_refined = 0
         """Relative poses fitted on patch-aligned points (``vision.patch_refine``)."""
+        self.patch_retried = 0
+        """Of those, the ones aligned by the retry (``vision.patch_retry_half``)."""
 
     def features(
         self,
@@ -321,7 +323,9 @@ class VisualFrontend:
         ``(T_cbca, ia, ib, x_b, X_b, e)``: the pose, the surviving pairs, b's refined normalised
         points, b's 3-D points moved along the refined rays onto b's own LiDAR planes, and the
         fit's errors; None (keep the detections) where images or planes are missing or fewer
-        than ``min_inliers`` patches, or ``patch_min_fraction`` of them, align."""
+        than ``min_inliers`` patches, or ``patch_min_fraction`` of them, align (and the retry
+        with ``patch_retry_half`` / ``patch_retry_min_ncc`` / ``patch_retry_min_fraction``, when
+        on, fails too)."""
         cfg = self.cfg
         if a.image is None or b.image is None or a.normal is None or b.normal is None:
             return None
@@ -330,20 +334,16 @@ class VisualFrontend:
             return None
         ia, ib = ia[usable], ib[usable]
         dist = self.rig.camera_distortion
-        uv, ok = align_patches(
-            a.image,
-            b.image,
-            a.uv[ia],
-            a.X[ia],
-            a.normal[ia],
-            T_cbca,
-            self.K,
-            dist,
-            cfg.patch_half,
-            min_ncc=cfg.patch_min_ncc,
-        )
+        args = (a.image, b.image, a.uv[ia], a.X[ia], a.normal[ia], T_cbca, self.K, dist)
+        uv, ok = align_patches(*args, cfg.patch_half, min_ncc=cfg.patch_min_ncc)
         if ok.sum() < max(cfg.min_inliers, cfg.patch_min_fraction * len(ok)):
-            return None
+            if cfg.patch_retry_half <= 0:
+                return None
+            # too few align (sensor noise caps the NCC in the dark): larger patches, lower bar
+            uv, ok = align_patches(*args, cfg.patch_retry_half, min_ncc=cfg.patch_retry_min_ncc)
+            if ok.sum() < max(cfg.min_inliers, cfg.patch_retry_min_fraction * len(ok)):
+                return None
+            self.patch_retried += 1
         ia, ib = ia[ok], ib[ok]
         x = undistort_normalized(uv[ok], self.K, dist)
         fit = motion_only(a.X[ia], x, T_cbca, self.f, cfg.min_inliers)

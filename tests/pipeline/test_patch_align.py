@@ -121,10 +121,10 @@ def test_the_frontend_hands_the_patch_settings_to_the_alignment(monkeypatch) -> 
     from jaxslam.pipeline import _visual
     from jaxslam.pipeline._config import RigConfig, VisionConfig
 
-    seen = {}
+    seen = []
 
     def spy(img_a, img_b, uv_a, X_a, n_a, T_ba, K_, dist, half=6, iterations=10, max_shift_px=2.5, min_ncc=0.7):
-        seen.update(half=half, min_ncc=min_ncc)
+        seen.append((half, min_ncc))
         return np.asarray(uv_a, np.float64), np.zeros(len(uv_a), bool)
 
     monkeypatch.setattr(_visual, "align_patches", spy)
@@ -142,4 +142,22 @@ def test_the_frontend_hands_the_patch_settings_to_the_alignment(monkeypatch) -> 
 
     idx = np.arange(n)
     assert fe._refine_by_patches(feats(0), feats(1), idx, idx, np.eye(4)) is None  # nothing aligned
-    assert seen == {"half": 10, "min_ncc": 0.45}
+    assert seen == [(10, 0.45)]  # no retry by default
+    seen.clear()
+    fe = _visual.VisualFrontend(VisionConfig(patch_retry_half=9, patch_retry_min_ncc=0.4), RigConfig())
+    assert fe._refine_by_patches(feats(0), feats(1), idx, idx, np.eye(4)) is None
+    assert seen == [(6, 0.7), (9, 0.4)] and fe.patch_retried == 0  # the retry failed as well
+
+    # a retry that aligns: the pose is fitted on its positions and counted
+    def retry_aligns(
+        img_a, img_b, uv_a, X_a, n_a, T_ba, K_, dist, half=6, iterations=10, max_shift_px=2.5, min_ncc=0.7
+    ):
+        return np.asarray(uv_a, np.float64), np.full(len(uv_a), half == 9)
+
+    monkeypatch.setattr(_visual, "align_patches", retry_aligns)
+    a, b = feats(0), feats(1)
+    b.uv = distort_normalized(a.X[:, :2] / a.X[:, 2:], fe.rig.camera_distortion) * fe.K[[0, 1], [0, 1]] + fe.K[:2, 2]
+    a.uv = b.uv  # a static camera: b sees a's points where a does
+    out = fe._refine_by_patches(a, b, idx, idx, np.eye(4))
+    assert out is not None and fe.patch_retried == 1
+    assert np.allclose(out[0], np.eye(4), atol=1e-9)
