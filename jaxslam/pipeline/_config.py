@@ -201,7 +201,9 @@ class VisionConfig:
     ``patch_retry_min_ncc`` and ``patch_retry_min_fraction``: only the keyframe pairs whose
     alignment fails change, so lit stretches keep their result."""
     patch_retry_min_ncc: float = 0.5
+    """The retry's NCC bar (``patch_min_ncc`` of the second alignment)."""
     patch_retry_min_fraction: float = 0.4
+    """The retry's share of the inliers that must align (``patch_min_fraction`` of it)."""
     ratio: float = 0.8
     ransac_threshold_px: float = 1.0
     min_inliers: int = 15
