@@ -8,7 +8,9 @@ For each (seed, lighting) the recording is simulated once into ``--workdir`` (re
 present), then ``jaxslam run`` is called in-process with the default configuration and with
 each ablation switch. Prints one row per run (APE, RPE, loop error, reprojection RMSE,
 registered keyframes, loops accepted/false, run time vs recording duration) and the goals; the
-JSON rows also hold each odometry kind's length ratio to ground truth (``edge_length_ratios``).
+JSON rows also hold each odometry kind's length ratio to ground truth (``edge_length_ratios``)
+and each front end's consistency (``factor_consistency``: NEES and the along-axis z RMS of its
+measurements against ground truth, 1.0 when the stated sigmas are honest; printed under the row).
 Writes a list of rows as JSON with ``--json``. The default configuration was set while
 developing on seed 0 / uneven light; other seeds and lighting are held out.
 """
@@ -130,6 +132,7 @@ def main() -> None:
                     "timing_s": m.get("timing_s"),
                     "warnings": m.get("warnings"),
                     "edge_length_ratios": edges,
+                    "factor_consistency": m.get("factor_consistency"),
                 }
                 rows.append(row)
                 reg = (
@@ -148,6 +151,17 @@ def main() -> None:
                     f"{row['runtime_s'] / max(row['sequence_duration_s'], 1e-9):>9.2f}",
                     flush=True,
                 )
+                cons = row["factor_consistency"] or {}
+                if cons:  # each front end's stated sigmas against its errors (1.0 = honest)
+                    print(
+                        "    NEES / axis z RMS: "
+                        + ", ".join(
+                            f"{kind.split()[0]} {f(c['nees'], '.2f')} / {f(c['axis_z_rms'], '.2f')}"
+                            f" (n {c['measurements']})"
+                            for kind, c in cons.items()
+                        ),
+                        flush=True,
+                    )
                 if args.json:
                     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
                     Path(args.json).write_text(json.dumps(rows, indent=2, default=str) + "\n")

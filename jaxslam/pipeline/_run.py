@@ -104,6 +104,55 @@ def odometry_length_ratio(est: Estimator, gt_poses: np.ndarray, min_motion: floa
     return out
 
 
+#: chi-square(6) 95 % quantile: an honest 6-dof factor exceeds it 5 % of the time
+_CHI2_6_95 = 12.591587243743977
+
+
+def factor_consistency(est: Estimator, gt_poses: np.ndarray, min_motion: float = 0.1) -> dict[str, Any]:
+    """Whether each front end's stated covariance is honest, against ground truth: per kind
+    (``lidar odometry``, ``visual odometry``, ``loop closure``), over its measurements (all
+    baselines; odometry pairs whose true motion is below ``min_motion`` m are left out), the
+    error ``e = Log(T_meas^-1 T_true)`` (tangent ``[rotation, translation]``, the between
+    factor's) and its information ``I``:
+
+    * ``nees``: mean of ``e^T I e / 6`` (1.0 = honest; 4 = the sigmas are half the errors);
+    * ``over_95``: share of measurements with ``e^T I e`` above the chi-square(6) 95 % point
+      (0.05 when honest; more = overconfident somewhere, even if the mean looks right);
+    * ``axis_z_rms``: RMS of the along-axis translation error (body x, the direction of
+      travel) over its marginal sigma ``sqrt((I^-1)_xx)``: the tunnel axis is where the
+      LiDAR is weak and the camera measures short, so it gets its own figure;
+    * ``axis_error_rms_m``: RMS of that error in metres.
+
+    The measurements are the front ends' own (the visual ones before the graph's length
+    scale), as in :func:`odometry_length_ratio`. ``gt_poses`` (K, 4, 4) at the keyframe times."""
+    out: dict[str, Any] = {}
+    for kind in ("lidar odometry", "visual odometry", "loop closure"):
+        nees, zs, ex = [], [], []
+        for k, i, j, T, info in est.edges:
+            if k != kind:
+                continue
+            T_true = host.inverse(gt_poses[i]) @ gt_poses[j]
+            if kind != "loop closure" and float(np.linalg.norm(T_true[:3, 3])) < min_motion:
+                continue
+            e = host.se3_log(host.inverse(T) @ T_true)
+            info = np.asarray(info, dtype=np.float64)
+            nees.append(float(e @ info @ e))
+            var_x = float(np.linalg.pinv(info)[3, 3])
+            zs.append(e[3] / np.sqrt(var_x) if var_x > 0 else np.nan)
+            ex.append(e[3])
+        if nees:
+            n = np.asarray(nees)
+            z = np.asarray(zs)
+            out[kind] = {
+                "measurements": len(n),
+                "nees": float(np.mean(n) / 6.0),
+                "over_95": float(np.mean(n > _CHI2_6_95)),
+                "axis_z_rms": float(np.sqrt(np.nanmean(z * z))) if np.isfinite(z).any() else None,
+                "axis_error_rms_m": float(np.sqrt(np.mean(np.square(ex)))),
+            }
+    return out
+
+
 def accepted_loops(est: Estimator) -> list[Any]:
     """Every accepted loop, LiDAR and visual (each has ``i``, ``j``, ``T``, ``information``)."""
     return [*(est.loops.accepted if est.loops else []), *(est.visual_loops.accepted if est.visual_loops else [])]
@@ -249,6 +298,7 @@ def run_recording(
             if len(gt_T) == len(poses):  # ground truth at every keyframe
                 metrics["loops_false"] = false_loops(est, gt_T)
                 metrics["odometry_length_ratio"] = odometry_length_ratio(est, gt_T)
+                metrics["factor_consistency"] = factor_consistency(est, gt_T)
             if plots:
                 ev.plot_ape_over_distance(out / "errors.png", a)
         except InputFormatError as e:

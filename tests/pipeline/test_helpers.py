@@ -943,6 +943,46 @@ def test_failed_registrations_stay_out_of_the_local_map():
     assert odo._failures == 0
 
 
+def test_factor_consistency_scores_each_front_end_against_ground_truth():
+    """Closed form: LiDAR errors drawn at exactly their stated sigma give NEES ~1 and an axis
+    z RMS ~1; visual errors twice their sigma give ~4 and ~2; the along-axis z uses the
+    marginal sigma of a correlated information; a loop closure counts even without motion,
+    a standing odometry pair does not."""
+    from types import SimpleNamespace
+
+    from jaxslam.pipeline._run import factor_consistency
+
+    rng = np.random.default_rng(5)
+    n = 400
+    gt = np.stack([host.se3_exp(np.r_[0.05 * rng.normal(size=3), 0.3 * k, 0.02 * np.sin(k), 0.0]) for k in range(n)])
+    gt[7] = gt[6]  # standing still: left out of the odometry
+    sig = np.array([0.001, 0.001, 0.001, 0.01, 0.004, 0.004])
+    info = np.diag(1 / sig**2)
+    edges = []
+    for k in range(1, n):
+        T_true = host.inverse(gt[k - 1]) @ gt[k]
+        for kind, f in (("lidar odometry", 1.0), ("visual odometry", 2.0)):
+            e = f * sig * rng.normal(size=6)
+            # measured = T_true Exp(-e): then Log(measured^-1 T_true) = e
+            edges.append((kind, k - 1, k, T_true @ host.se3_exp(-e), info))
+    # a correlated information: the x marginal is what the z divides by
+    cov = np.diag(sig**2)
+    cov[3, 4] = cov[4, 3] = 0.8 * sig[3] * sig[4]
+    e = np.r_[0, 0, 0, 0.02, 0, 0]
+    edges.append(("loop closure", 0, 0, host.se3_exp(-e), np.linalg.inv(cov)))
+    out = factor_consistency(SimpleNamespace(edges=edges), gt)  # type: ignore[arg-type]
+    assert set(out) == {"lidar odometry", "visual odometry", "loop closure"}
+    lid, vis, loop = out["lidar odometry"], out["visual odometry"], out["loop closure"]
+    assert lid["measurements"] == vis["measurements"] == n - 2  # the standing pair is left out
+    assert lid["nees"] == pytest.approx(1.0, abs=0.1) and vis["nees"] == pytest.approx(4.0, abs=0.4)
+    assert lid["axis_z_rms"] == pytest.approx(1.0, abs=0.1) and vis["axis_z_rms"] == pytest.approx(2.0, abs=0.2)
+    assert lid["over_95"] == pytest.approx(0.05, abs=0.03) and vis["over_95"] > 0.5
+    assert vis["axis_error_rms_m"] == pytest.approx(0.02, rel=0.15)
+    assert loop["measurements"] == 1
+    assert loop["axis_z_rms"] == pytest.approx(2.0, rel=1e-9)  # 0.02 m over the 0.01 m marginal
+    assert loop["nees"] == pytest.approx(float(e @ np.linalg.inv(cov) @ e) / 6, rel=1e-9)
+
+
 def test_odometry_length_ratio_compares_each_front_end_with_ground_truth():
     """Closed form: visual measurements 2 % short and LiDAR ones exact along a curved path
     give 0.98 and 1.0; a loop closure and a standing-still pair are left out."""

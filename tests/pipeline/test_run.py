@@ -126,6 +126,10 @@ def test_run_recording_writes_the_results_folder(bag, config, tmp_path) -> None:
     assert ratios["lidar odometry"]["pairs"] > 0
     for r in ratios.values():
         assert 0.9 < r["total"] < 1.1 and 0.9 < r["median"] < 1.1, ratios
+    cons = saved["factor_consistency"]  # each front end's stated sigmas against its errors
+    assert cons["lidar odometry"]["measurements"] >= ratios["lidar odometry"]["pairs"]
+    for c in cons.values():
+        assert np.isfinite(c["nees"]) and c["nees"] > 0 and 0 <= c["over_95"] <= 1, cons
     # the written trajectory gives the same APE through the evaluation CLI (evo-equal numbers)
     from jaxslam.cli import main
 
