@@ -110,10 +110,11 @@ _CHI2_6_95 = 12.591587243743977
 
 def factor_consistency(est: Estimator, gt_poses: np.ndarray, min_motion: float = 0.1) -> dict[str, Any]:
     """Whether each front end's stated covariance is honest, against ground truth: per kind
-    (``lidar odometry``, ``visual odometry``, ``loop closure``), over its measurements (all
-    baselines; odometry pairs whose true motion is below ``min_motion`` m are left out), the
-    error ``e = Log(T_meas^-1 T_true)`` (tangent ``[rotation, translation]``, the between
-    factor's) and its information ``I``:
+    (``lidar odometry``, ``visual odometry``, ``loop closure``, and the accepted loops split
+    into ``lidar loop`` / ``visual loop``), over its measurements (all baselines; odometry
+    pairs whose true motion is below ``min_motion`` m are left out), the error
+    ``e = Log(T_meas^-1 T_true)`` (tangent ``[rotation, translation]``, the between factor's)
+    and its information ``I``:
 
     * ``nees``: mean of ``e^T I e / 6`` (1.0 = honest; 4 = the sigmas are half the errors);
     * ``over_95``: share of measurements with ``e^T I e`` above the chi-square(6) 95 % point
@@ -124,15 +125,23 @@ def factor_consistency(est: Estimator, gt_poses: np.ndarray, min_motion: float =
     * ``axis_error_rms_m``: RMS of that error in metres.
 
     The measurements are the front ends' own (the visual ones before the graph's length
-    scale), as in :func:`odometry_length_ratio`. ``gt_poses`` (K, 4, 4) at the keyframe times."""
+    scale; the loops before their robust kernel), as in :func:`odometry_length_ratio`.
+    ``gt_poses`` (K, 4, 4) at the keyframe times."""
+    groups: dict[str, list[tuple[int, int, np.ndarray, np.ndarray]]] = {}
+    for kind, i, j, T, info in est.edges:
+        groups.setdefault(kind, []).append((i, j, T, info))
+    for kind, finder in (
+        ("lidar loop", getattr(est, "loops", None)),
+        ("visual loop", getattr(est, "visual_loops", None)),
+    ):
+        if finder is not None and finder.accepted:
+            groups[kind] = [(lp.i, lp.j, lp.T, lp.information) for lp in finder.accepted]
     out: dict[str, Any] = {}
-    for kind in ("lidar odometry", "visual odometry", "loop closure"):
+    for kind in ("lidar odometry", "visual odometry", "loop closure", "lidar loop", "visual loop"):
         nees, zs, ex = [], [], []
-        for k, i, j, T, info in est.edges:
-            if k != kind:
-                continue
+        for i, j, T, info in groups.get(kind, []):
             T_true = host.inverse(gt_poses[i]) @ gt_poses[j]
-            if kind != "loop closure" and float(np.linalg.norm(T_true[:3, 3])) < min_motion:
+            if "loop" not in kind and float(np.linalg.norm(T_true[:3, 3])) < min_motion:
                 continue
             e = host.se3_log(host.inverse(T) @ T_true)
             info = np.asarray(info, dtype=np.float64)

@@ -972,6 +972,13 @@ def test_factor_consistency_scores_each_front_end_against_ground_truth():
     edges.append(("loop closure", 0, 0, host.se3_exp(-e), np.linalg.inv(cov)))
     out = factor_consistency(SimpleNamespace(edges=edges), gt)  # type: ignore[arg-type]
     assert set(out) == {"lidar odometry", "visual odometry", "loop closure"}
+    # an estimator's accepted loops are also scored apart, LiDAR and visual
+    loop_obj = SimpleNamespace(i=0, j=0, T=host.se3_exp(-e), information=np.linalg.inv(cov))
+    split = factor_consistency(
+        SimpleNamespace(edges=edges, loops=SimpleNamespace(accepted=[loop_obj]), visual_loops=None),  # type: ignore[arg-type]
+        gt,
+    )
+    assert split["lidar loop"] == split["loop closure"] and "visual loop" not in split
     lid, vis, loop = out["lidar odometry"], out["visual odometry"], out["loop closure"]
     assert lid["measurements"] == vis["measurements"] == n - 2  # the standing pair is left out
     assert lid["nees"] == pytest.approx(1.0, abs=0.1) and vis["nees"] == pytest.approx(4.0, abs=0.4)
