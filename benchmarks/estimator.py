@@ -156,7 +156,7 @@ def main() -> None:
                     print(
                         "    NEES / axis z RMS: "
                         + ", ".join(
-                            f"{kind.split()[0]} {f(c['nees'], '.2f')} / {f(c['axis_z_rms'], '.2f')}"
+                            f"{kind.replace(' odometry', ' odo')} {f(c['nees'], '.2f')} / {f(c['axis_z_rms'], '.2f')}"
                             f" (n {c['measurements']})"
                             for kind, c in cons.items()
                         ),
