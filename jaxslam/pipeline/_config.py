@@ -141,6 +141,11 @@ class LidarConfig:
     axis_weights: tuple[float, float] = (1.0, 1.0)
     """Information multipliers of the factor's (rotation, translation) blocks, after
     ``information_scale`` (sigmas divided by their square roots); learned by ``jaxslam tune``."""
+    axis_sigma_scale: float = 1.0
+    """Multiplies the factor's along-axis (body x, the direction of travel) sigma, keeping its
+    correlations (row and column x of the information divided by it). For calibrating the
+    stated sigma against ground truth along the one direction a tunnel leaves weak:
+    ``metrics.json["factor_consistency"][kind]["axis_z_rms"]`` is the ratio to undo."""
     intensity: bool = False
     """Use the return intensity in registration (odometry and loop verification): the
     surface's reflectance pattern (stains, joints, pipes) can observe the tunnel axis where the
@@ -254,6 +259,11 @@ class VisionConfig:
     axis_weights: tuple[float, float] = (1.0, 1.0)
     """Information multipliers of the factor's (rotation, translation) blocks, after
     ``information_scale`` (sigmas divided by their square roots); learned by ``jaxslam tune``."""
+    axis_sigma_scale: float = 1.0
+    """Multiplies the factor's along-axis (body x, the direction of travel) sigma, keeping its
+    correlations (row and column x of the information divided by it). For calibrating the
+    stated sigma against ground truth along the one direction a tunnel leaves weak:
+    ``metrics.json["factor_consistency"][kind]["axis_z_rms"]`` is the ratio to undo."""
     depth_radius_px: float = 12.0
     """LiDAR points projected within this radius of a feature give it depth (a local plane)."""
     max_depth: float = 20.0
@@ -369,6 +379,13 @@ class LoopConfig:
     """Information multipliers of the factor's (rotation, translation) blocks, after
     ``information_scale`` (sigmas divided by their square roots), on LiDAR and visual loops
     alike; learned by ``jaxslam tune``."""
+    axis_sigma_scale: float = 1.0
+    """Multiplies the loop factor's along-axis (body x, the direction of travel) sigma, keeping its
+    correlations (row and column x of the information divided by it). For calibrating the
+    stated sigma against ground truth along the one direction a tunnel leaves weak:
+    ``metrics.json["factor_consistency"][kind]["axis_z_rms"]`` is the ratio to undo. Applied
+    to the factor after the odometry-consistency gate, which keeps the registration's
+    information: it changes a loop's weight, not which loops are accepted."""
     visual: bool = True
     """Visual loops by projection (:mod:`jaxslam.pipeline._visual_loop`): an old keyframe's
     features with LiDAR depth found again in the current image, from any heading (an
@@ -593,6 +610,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
             if k in ("patch_min_fraction", "patch_retry_min_fraction") and not (np.isfinite(v) and 0 <= v <= 1):
                 raise ConfigError(f"{where}.{k}: expected a fraction in [0, 1], got {v!r}")
             if k == "guided_information_scale" and not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"{where}.{k}: expected a multiplier > 0, got {v!r}")
+            if k == "axis_sigma_scale" and not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"{where}.{k}: expected a multiplier > 0, got {v!r}")
             if k == "min_sigma_axis" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a sigma >= 0 (m, 0 = none), got {v!r}")

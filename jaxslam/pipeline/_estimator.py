@@ -52,7 +52,7 @@ from ..measurements import Image, ImuSample, LidarScan, PoseStamped, PositionFix
 from ..solvers import IncrementalConfig, IncrementalSolver
 from ._config import PipelineConfig
 from ._imu import ImuBuffer, NavState, gravity_alignment, preintegrate_interval, propagate
-from ._lidar_frontend import LidarOdometry, ScanResult, axis_weighted, information_for_factor
+from ._lidar_frontend import LidarOdometry, ScanResult, axis_sigma_scaled, axis_weighted, information_for_factor
 from ._loop import Loop, LoopCloser
 from ._visual import DirectionMeasurement, KeyframeFeatures, VisualFrontend, VisualMeasurement, with_length_sigma
 from ._visual_loop import LoopQuery, VisualLoop, VisualLoopCloser
@@ -470,15 +470,18 @@ class Estimator:
                 and scan.registration.converged
             ):
                 T_rel = host.inverse(prev.scan.T_odom) @ scan.T_odom
-                info = axis_weighted(
-                    information_for_factor(
-                        scan.registration.strong_information(),
-                        self.T_bl,
-                        self.cfg.lidar,
-                        self.cfg.lidar.information_scale,
-                        self.cfg.lidar.min_sigma_axis,
+                info = axis_sigma_scaled(
+                    axis_weighted(
+                        information_for_factor(
+                            scan.registration.strong_information(),
+                            self.T_bl,
+                            self.cfg.lidar,
+                            self.cfg.lidar.information_scale,
+                            self.cfg.lidar.min_sigma_axis,
+                        ),
+                        self.cfg.lidar.axis_weights,
                     ),
-                    self.cfg.lidar.axis_weights,
+                    self.cfg.lidar.axis_sigma_scale,
                 )
                 self.edges.append(("lidar odometry", k - 1, k, T_rel, info))
                 if scan.last_degenerate < prev.scan.index:  # anchored along the axis throughout
@@ -613,12 +616,14 @@ class Estimator:
 
     def _loop_factor(self, loop: Loop | VisualLoop):
         """The graph factor of an accepted loop (LiDAR or visual): its relative pose and
-        information under a Cauchy kernel; the edge is recorded for the residual plots."""
-        self.edges.append(("loop closure", loop.i, loop.j, loop.T, loop.information))
+        information (its along-axis sigma scaled by ``loop.axis_sigma_scale``) under a Cauchy
+        kernel; the edge is recorded for the residual plots."""
         cfg = self.cfg.loop
+        info = axis_sigma_scaled(loop.information, cfg.axis_sigma_scale)
+        self.edges.append(("loop closure", loop.i, loop.j, loop.T, info))
         # per constraint (an array): LiDAR and visual loops share one factor group
         robust = Cauchy(jnp.full(1, cfg.visual_cauchy_scale if isinstance(loop, VisualLoop) else cfg.cauchy_scale))
-        return self._tag("loop", _between(loop.i, loop.j, loop.T, loop.information, robust=robust))
+        return self._tag("loop", _between(loop.i, loop.j, loop.T, info, robust=robust))
 
     def _collect_vision(self, keep: int = 0) -> list:
         """Factors of all vision jobs but the newest ``keep``, in keyframe order (waiting for
@@ -646,7 +651,9 @@ class Estimator:
                 if self._vo_scale != 1.0:
                     vm.T = vm.T.copy()
                     vm.T[:3, 3] *= self._vo_scale
-                info = axis_weighted(vm.information, self.cfg.vision.axis_weights)
+                info = axis_sigma_scaled(
+                    axis_weighted(vm.information, self.cfg.vision.axis_weights), self.cfg.vision.axis_sigma_scale
+                )
                 ratio = self.cfg.vision.length_sigma_ratio
                 if ratio > 0 and all((k, k + 1) in self._lidar_rel for k in range(vm.i, vm.j)):
                     info = with_length_sigma(info, vm.T[:3, 3], ratio)

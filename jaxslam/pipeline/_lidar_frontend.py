@@ -78,6 +78,18 @@ def axis_weighted(info: np.ndarray, weights: tuple[float, float]) -> np.ndarray:
     return info * s[:, None] * s[None, :]
 
 
+def axis_sigma_scaled(info: np.ndarray, scale: float) -> np.ndarray:
+    """Information of a relative pose (tangent ``[rotation, translation]``) whose along-axis
+    (body x translation) sigma is multiplied by ``scale``, correlations kept: ``D^-1 info D^-1``
+    with ``D = diag(1, 1, 1, scale, 1, 1)``, i.e. the covariance ``D C D``. Exact for a
+    rank-deficient information too (no inverse taken)."""
+    if scale == 1.0:
+        return info
+    d = np.ones(6)
+    d[3] = 1.0 / scale
+    return info * d[:, None] * d[None, :]
+
+
 class LidarOdometry:
     """Scan-to-map odometry (see the module docstring)."""
 

@@ -28,6 +28,7 @@ from ..lie import SE3, host
 from ._config import PipelineConfig, find_rig, load_rig, save_config
 from ._estimator import Estimator
 from ._mapping import SparseMap, build_sparse_map
+from ._lidar_frontend import axis_sigma_scaled
 
 
 def _trajectory(times: np.ndarray, poses: np.ndarray) -> Trajectory:
@@ -135,7 +136,8 @@ def factor_consistency(est: Estimator, gt_poses: np.ndarray, min_motion: float =
         ("visual loop", getattr(est, "visual_loops", None)),
     ):
         if finder is not None and finder.accepted:
-            groups[kind] = [(lp.i, lp.j, lp.T, lp.information) for lp in finder.accepted]
+            scale = est.cfg.loop.axis_sigma_scale  # as the graph's loop factor has it
+            groups[kind] = [(lp.i, lp.j, lp.T, axis_sigma_scaled(lp.information, scale)) for lp in finder.accepted]
     out: dict[str, Any] = {}
     for kind in ("lidar odometry", "visual odometry", "loop closure", "lidar loop", "visual loop"):
         nees, zs, ex = [], [], []

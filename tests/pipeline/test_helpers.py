@@ -974,11 +974,17 @@ def test_factor_consistency_scores_each_front_end_against_ground_truth():
     assert set(out) == {"lidar odometry", "visual odometry", "loop closure"}
     # an estimator's accepted loops are also scored apart, LiDAR and visual
     loop_obj = SimpleNamespace(i=0, j=0, T=host.se3_exp(-e), information=np.linalg.inv(cov))
-    split = factor_consistency(
-        SimpleNamespace(edges=edges, loops=SimpleNamespace(accepted=[loop_obj]), visual_loops=None),  # type: ignore[arg-type]
-        gt,
-    )
+    from jaxslam.pipeline._config import PipelineConfig, config_from_dict
+
+    def split_with(cfg):
+        est = SimpleNamespace(edges=edges, loops=SimpleNamespace(accepted=[loop_obj]), visual_loops=None, cfg=cfg)
+        return factor_consistency(est, gt)  # type: ignore[arg-type]
+
+    split = split_with(PipelineConfig())
     assert split["lidar loop"] == split["loop closure"] and "visual loop" not in split
+    # scored with the information the graph's loop factor has: the along-axis sigma scaled
+    wider = split_with(config_from_dict({"loop": {"axis_sigma_scale": 2.0}}))
+    assert wider["lidar loop"]["axis_z_rms"] == pytest.approx(split["lidar loop"]["axis_z_rms"] / 2, rel=1e-9)
     lid, vis, loop = out["lidar odometry"], out["visual odometry"], out["loop closure"]
     assert lid["measurements"] == vis["measurements"] == n - 2  # the standing pair is left out
     assert lid["nees"] == pytest.approx(1.0, abs=0.1) and vis["nees"] == pytest.approx(4.0, abs=0.4)
@@ -1067,3 +1073,36 @@ def test_lidar_axis_sigma_adds_variance_along_body_x_only():
         config_from_dict({"lidar": {"min_sigma_axis": -0.01}})
     with pytest.raises(ConfigError, match="scale_revert_to"):
         config_from_dict({"vision": {"scale_revert_to": "mean"}})
+
+
+def test_axis_sigma_scale_multiplies_the_along_axis_sigma_only():
+    """``{lidar,vision,loop}.axis_sigma_scale``: the factor's covariance becomes ``D C D`` with
+    ``D = diag(1, 1, 1, s, 1, 1)`` (body-x sigma times s, its correlations kept, every other
+    marginal unchanged), also for a rank-deficient information; off (1.0) by default."""
+    from jaxslam.pipeline._config import PipelineConfig
+    from jaxslam.pipeline._lidar_frontend import axis_sigma_scaled
+
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(6, 6))
+    info = A @ A.T + 0.1 * np.eye(6)
+    cov = np.linalg.inv(info)
+    out_cov = np.linalg.inv(axis_sigma_scaled(info, 1.7))
+    D = np.diag([1, 1, 1, 1.7, 1, 1])
+    np.testing.assert_allclose(out_cov, D @ cov @ D, rtol=1e-9, atol=1e-12)
+    assert np.sqrt(out_cov[3, 3] / cov[3, 3]) == pytest.approx(1.7, rel=1e-9)
+    keep = [0, 1, 2, 4, 5]
+    np.testing.assert_allclose(np.diag(out_cov)[keep], np.diag(cov)[keep], rtol=1e-9)
+    # rank-deficient (a visual loop measures one direction): a vector in the null space stays there
+    a = rng.normal(size=6)
+    low = np.outer(a, a)
+    scaled = axis_sigma_scaled(low, 2.0)
+    assert np.linalg.matrix_rank(scaled) == 1
+    b = a / np.array([1, 1, 1, 2.0, 1, 1])
+    np.testing.assert_allclose(scaled, np.outer(b, b), rtol=1e-12)
+    assert axis_sigma_scaled(info, 1.0) is info
+    cfg = PipelineConfig()
+    assert cfg.lidar.axis_sigma_scale == cfg.vision.axis_sigma_scale == cfg.loop.axis_sigma_scale == 1.0
+    for section in ("lidar", "vision", "loop"):
+        assert getattr(config_from_dict({section: {"axis_sigma_scale": 1.4}}), section).axis_sigma_scale == 1.4
+        with pytest.raises(ConfigError, match="axis_sigma_scale"):
+            config_from_dict({section: {"axis_sigma_scale": 0.0}})

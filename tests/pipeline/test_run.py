@@ -224,6 +224,42 @@ def test_scale_reverts_to_a_run_wide_scale_the_graph_estimates(records, config, 
     assert ape < baseline[2] + 0.02, (ape, baseline[2])
 
 
+def test_axis_sigma_scale_reaches_every_factor_kind(records, config, baseline) -> None:
+    """``{lidar,vision,loop}.axis_sigma_scale``: in a run, every LiDAR odometry factor's,
+    visual odometry factor's and loop factor's information is exactly its front end's with the
+    along-axis sigma scaled (``axis_sigma_scaled``), and the run stays accurate."""
+    from jaxslam.pipeline._lidar_frontend import axis_sigma_scaled, axis_weighted, information_for_factor
+
+    s = {"lidar": 1.5, "vision": 1.3, "loop": 0.7}
+    cfg = config.replace(
+        lidar={"axis_sigma_scale": s["lidar"]},
+        vision={"axis_sigma_scale": s["vision"], "length_sigma_ratio": 0.0},
+        loop={"axis_sigma_scale": s["loop"]},
+    )
+    est, _, ape = _run(records, cfg)
+    edges: dict[str, dict] = {}
+    for kind, i, j, _T, info in est.edges:
+        edges.setdefault(kind, {}).setdefault((i, j), []).append(info)
+    lid = 0
+    for (i, j), infos in edges["lidar odometry"].items():
+        if j != i + 1:
+            continue
+        reg = est.keyframes[j].scan.registration
+        raw = information_for_factor(reg.strong_information(), est.T_bl, cfg.lidar, cfg.lidar.information_scale)
+        expect = axis_sigma_scaled(axis_weighted(raw, cfg.lidar.axis_weights), s["lidar"])
+        np.testing.assert_allclose(infos[0], expect, rtol=1e-12)
+        lid += 1
+    for vm in est.visual_edges:
+        expect = axis_sigma_scaled(axis_weighted(vm.information, cfg.vision.axis_weights), s["vision"])
+        assert any(np.allclose(x, expect, rtol=1e-12, atol=0) for x in edges["visual odometry"][(vm.i, vm.j)])
+    loops = [*est.loops.accepted, *(est.visual_loops.accepted if est.visual_loops else [])]
+    for lp in loops:
+        expect = axis_sigma_scaled(lp.information, s["loop"])
+        assert any(np.allclose(x, expect, rtol=1e-12, atol=0) for x in edges["loop closure"][(lp.i, lp.j)])
+    assert lid > 10 and len(est.visual_edges) > 10 and len(loops) > 0
+    assert ape < baseline[2] + 0.02, (ape, baseline[2])
+
+
 def test_loop_factors_carry_their_kinds_kernel_scale(baseline, config) -> None:
     """LiDAR and visual loops share one factor group, so each loop factor holds its Cauchy
     scale per constraint: ``loop.cauchy_scale`` on LiDAR loops, ``loop.visual_cauchy_scale``
