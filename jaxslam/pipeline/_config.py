@@ -380,12 +380,16 @@ class LoopConfig:
     ``information_scale`` (sigmas divided by their square roots), on LiDAR and visual loops
     alike; learned by ``jaxslam tune``."""
     axis_sigma_scale: float = 1.0
-    """Multiplies the loop factor's along-axis (body x, the direction of travel) sigma, keeping its
-    correlations (row and column x of the information divided by it). For calibrating the
-    stated sigma against ground truth along the one direction a tunnel leaves weak:
-    ``metrics.json["factor_consistency"][kind]["axis_z_rms"]`` is the ratio to undo. Applied
-    to the factor after the odometry-consistency gate, which keeps the registration's
-    information: it changes a loop's weight, not which loops are accepted."""
+    """Multiplies a LiDAR loop factor's along-axis (body x, the direction of travel) sigma,
+    keeping its correlations (row and column x of the information divided by it), for
+    calibrating it against ground truth:
+    ``metrics.json["factor_consistency"]["lidar loop"]["axis_z_rms"]`` is the ratio to undo
+    (``benchmarks/calibrate_axis.py``). Applied to the factor after the odometry-consistency
+    gate, which keeps the registration's information: it changes a loop's weight, not which
+    loops are accepted."""
+    visual_axis_sigma_scale: float = 1.0
+    """The same for visual loops (``factor_consistency["visual loop"]``): their along-track
+    sigma comes from a different model (patch NCC peaks, not a registration Hessian)."""
     visual: bool = True
     """Visual loops by projection (:mod:`jaxslam.pipeline._visual_loop`): an old keyframe's
     features with LiDAR depth found again in the current image, from any heading (an
@@ -611,7 +615,7 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a fraction in [0, 1], got {v!r}")
             if k == "guided_information_scale" and not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"{where}.{k}: expected a multiplier > 0, got {v!r}")
-            if k == "axis_sigma_scale" and not (np.isfinite(v) and v > 0):
+            if k in ("axis_sigma_scale", "visual_axis_sigma_scale") and not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"{where}.{k}: expected a multiplier > 0, got {v!r}")
             if k == "min_sigma_axis" and not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"{where}.{k}: expected a sigma >= 0 (m, 0 = none), got {v!r}")

@@ -616,13 +616,15 @@ class Estimator:
 
     def _loop_factor(self, loop: Loop | VisualLoop):
         """The graph factor of an accepted loop (LiDAR or visual): its relative pose and
-        information (its along-axis sigma scaled by ``loop.axis_sigma_scale``) under a Cauchy
-        kernel; the edge is recorded for the residual plots."""
+        information (its along-axis sigma scaled by ``loop.axis_sigma_scale``, or
+        ``loop.visual_axis_sigma_scale`` for a visual loop) under a Cauchy kernel; the edge is
+        recorded for the residual plots."""
         cfg = self.cfg.loop
-        info = axis_sigma_scaled(loop.information, cfg.axis_sigma_scale)
+        visual = isinstance(loop, VisualLoop)
+        info = axis_sigma_scaled(loop.information, cfg.visual_axis_sigma_scale if visual else cfg.axis_sigma_scale)
         self.edges.append(("loop closure", loop.i, loop.j, loop.T, info))
         # per constraint (an array): LiDAR and visual loops share one factor group
-        robust = Cauchy(jnp.full(1, cfg.visual_cauchy_scale if isinstance(loop, VisualLoop) else cfg.cauchy_scale))
+        robust = Cauchy(jnp.full(1, cfg.visual_cauchy_scale if visual else cfg.cauchy_scale))
         return self._tag("loop", _between(loop.i, loop.j, loop.T, info, robust=robust))
 
     def _collect_vision(self, keep: int = 0) -> list:

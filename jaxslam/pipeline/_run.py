@@ -27,8 +27,8 @@ from ..io._trajectory import Trajectory
 from ..lie import SE3, host
 from ._config import PipelineConfig, find_rig, load_rig, save_config
 from ._estimator import Estimator
-from ._mapping import SparseMap, build_sparse_map
 from ._lidar_frontend import axis_sigma_scaled
+from ._mapping import SparseMap, build_sparse_map
 
 
 def _trajectory(times: np.ndarray, poses: np.ndarray) -> Trajectory:
@@ -131,12 +131,12 @@ def factor_consistency(est: Estimator, gt_poses: np.ndarray, min_motion: float =
     groups: dict[str, list[tuple[int, int, np.ndarray, np.ndarray]]] = {}
     for kind, i, j, T, info in est.edges:
         groups.setdefault(kind, []).append((i, j, T, info))
-    for kind, finder in (
-        ("lidar loop", getattr(est, "loops", None)),
-        ("visual loop", getattr(est, "visual_loops", None)),
+    for kind, finder, field in (
+        ("lidar loop", getattr(est, "loops", None), "axis_sigma_scale"),
+        ("visual loop", getattr(est, "visual_loops", None), "visual_axis_sigma_scale"),
     ):
         if finder is not None and finder.accepted:
-            scale = est.cfg.loop.axis_sigma_scale  # as the graph's loop factor has it
+            scale = getattr(est.cfg.loop, field)  # as the graph's loop factor has it
             groups[kind] = [(lp.i, lp.j, lp.T, axis_sigma_scaled(lp.information, scale)) for lp in finder.accepted]
     out: dict[str, Any] = {}
     for kind in ("lidar odometry", "visual odometry", "loop closure", "lidar loop", "visual loop"):
@@ -161,6 +161,41 @@ def factor_consistency(est: Estimator, gt_poses: np.ndarray, min_motion: float =
                 "axis_z_rms": float(np.sqrt(np.nanmean(z * z))) if np.isfinite(z).any() else None,
                 "axis_error_rms_m": float(np.sqrt(np.mean(np.square(ex)))),
             }
+    return out
+
+
+#: the factor kind of :func:`factor_consistency` whose along-axis sigma each (section, field) scales
+AXIS_SCALE_KINDS = {
+    ("lidar", "axis_sigma_scale"): "lidar odometry",
+    ("vision", "axis_sigma_scale"): "visual odometry",
+    ("loop", "axis_sigma_scale"): "lidar loop",
+    ("loop", "visual_axis_sigma_scale"): "visual loop",
+}
+
+
+def axis_sigma_calibration(
+    consistencies: list[dict[str, Any]], config: PipelineConfig | None = None, min_measurements: int = 30
+) -> dict[str, dict[str, float]]:
+    """The along-axis sigma scales (:data:`AXIS_SCALE_KINDS`) that make them honest on these
+    runs (moment matching): each kind's along-axis z RMS pooled over the runs'
+    :func:`factor_consistency` results (``sqrt(sum n z^2 / sum n)``), times the scale the runs
+    were made with (``config``, default: the defaults). A kind with fewer than
+    ``min_measurements`` measurements in all is left out. Returns config sections, e.g.
+    ``{"lidar": {"axis_sigma_scale": 1.3}, "loop": {"axis_sigma_scale": 0.4,
+    "visual_axis_sigma_scale": 1.0}, ...}``, for :func:`config_from_dict` / YAML.
+    One step of a fixed point: the scales change the run, so measure again with them."""
+    config = config or PipelineConfig()
+    out: dict[str, dict[str, float]] = {}
+    for (section, field), kind in AXIS_SCALE_KINDS.items():
+        n = zz = 0.0
+        for cons in consistencies:
+            c = (cons or {}).get(kind)
+            if c and c.get("axis_z_rms") is not None and np.isfinite(c["axis_z_rms"]):
+                n += c["measurements"]
+                zz += c["measurements"] * c["axis_z_rms"] ** 2
+        if n >= min_measurements:
+            old = getattr(getattr(config, section), field)
+            out.setdefault(section, {})[field] = float(old * np.sqrt(zz / n))
     return out
 
 

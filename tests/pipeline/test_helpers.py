@@ -983,7 +983,7 @@ def test_factor_consistency_scores_each_front_end_against_ground_truth():
     split = split_with(PipelineConfig())
     assert split["lidar loop"] == split["loop closure"] and "visual loop" not in split
     # scored with the information the graph's loop factor has: the along-axis sigma scaled
-    wider = split_with(config_from_dict({"loop": {"axis_sigma_scale": 2.0}}))
+    wider = split_with(config_from_dict({"loop": {"axis_sigma_scale": 2.0, "visual_axis_sigma_scale": 5.0}}))
     assert wider["lidar loop"]["axis_z_rms"] == pytest.approx(split["lidar loop"]["axis_z_rms"] / 2, rel=1e-9)
     lid, vis, loop = out["lidar odometry"], out["visual odometry"], out["loop closure"]
     assert lid["measurements"] == vis["measurements"] == n - 2  # the standing pair is left out
@@ -1102,7 +1102,37 @@ def test_axis_sigma_scale_multiplies_the_along_axis_sigma_only():
     assert axis_sigma_scaled(info, 1.0) is info
     cfg = PipelineConfig()
     assert cfg.lidar.axis_sigma_scale == cfg.vision.axis_sigma_scale == cfg.loop.axis_sigma_scale == 1.0
-    for section in ("lidar", "vision", "loop"):
-        assert getattr(config_from_dict({section: {"axis_sigma_scale": 1.4}}), section).axis_sigma_scale == 1.4
-        with pytest.raises(ConfigError, match="axis_sigma_scale"):
-            config_from_dict({section: {"axis_sigma_scale": 0.0}})
+    assert cfg.loop.visual_axis_sigma_scale == 1.0
+    for section, field in (("lidar", "a"), ("vision", "a"), ("loop", "a"), ("loop", "visual_a")):
+        field += "xis_sigma_scale"
+        assert getattr(getattr(config_from_dict({section: {field: 1.4}}), section), field) == 1.4
+        with pytest.raises(ConfigError, match=field):
+            config_from_dict({section: {field: 0.0}})
+
+
+def test_axis_sigma_calibration_pools_the_runs_z_and_undoes_it():
+    """Closed form: two runs' along-axis z RMS pooled by measurement count, times the scale
+    the runs were made with; a kind with too few measurements is left out; the result loads
+    as a config."""
+    from jaxslam.pipeline._run import axis_sigma_calibration
+
+    def c(n, z):
+        return {"measurements": n, "axis_z_rms": z}
+
+    runs = [
+        {"lidar odometry": c(100, 1.2), "lidar loop": c(5, 0.5)},
+        {"lidar odometry": c(300, 1.6), "visual odometry": c(40, 2.0)},
+        {"visual loop": c(50, 0.9), "loop closure": c(55, 3.0)},
+        {},
+    ]
+    out = axis_sigma_calibration(runs)
+    assert set(out) == {"lidar", "vision", "loop"}
+    assert out["loop"] == {"visual_axis_sigma_scale": pytest.approx(0.9)}  # 5 LiDAR loops are too few
+    assert out["lidar"]["axis_sigma_scale"] == pytest.approx(np.sqrt((100 * 1.44 + 300 * 2.56) / 400), rel=1e-12)
+    assert out["vision"]["axis_sigma_scale"] == pytest.approx(2.0, rel=1e-12)
+    base = config_from_dict({"lidar": {"axis_sigma_scale": 2.0}})
+    again = axis_sigma_calibration(runs, base)
+    assert again["lidar"]["axis_sigma_scale"] == pytest.approx(2 * out["lidar"]["axis_sigma_scale"], rel=1e-12)
+    assert config_from_dict(out).vision.axis_sigma_scale == pytest.approx(2.0)
+    assert axis_sigma_calibration(runs, min_measurements=1)["loop"]["axis_sigma_scale"] == pytest.approx(0.5)
+    assert config_from_dict(out).loop.visual_axis_sigma_scale == pytest.approx(0.9)

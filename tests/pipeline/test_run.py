@@ -225,16 +225,17 @@ def test_scale_reverts_to_a_run_wide_scale_the_graph_estimates(records, config, 
 
 
 def test_axis_sigma_scale_reaches_every_factor_kind(records, config, baseline) -> None:
-    """``{lidar,vision,loop}.axis_sigma_scale``: in a run, every LiDAR odometry factor's,
-    visual odometry factor's and loop factor's information is exactly its front end's with the
-    along-axis sigma scaled (``axis_sigma_scaled``), and the run stays accurate."""
+    """``{lidar,vision,loop}.axis_sigma_scale`` and ``loop.visual_axis_sigma_scale``: in a
+    run, every LiDAR odometry factor's, visual odometry factor's and loop factor's information
+    is exactly its front end's with the along-axis sigma scaled (``axis_sigma_scaled``), and
+    the run stays accurate."""
     from jaxslam.pipeline._lidar_frontend import axis_sigma_scaled, axis_weighted, information_for_factor
 
-    s = {"lidar": 1.5, "vision": 1.3, "loop": 0.7}
+    s = {"lidar": 1.5, "vision": 1.3, "loop": 0.7, "visual loop": 1.2}
     cfg = config.replace(
         lidar={"axis_sigma_scale": s["lidar"]},
         vision={"axis_sigma_scale": s["vision"], "length_sigma_ratio": 0.0},
-        loop={"axis_sigma_scale": s["loop"]},
+        loop={"axis_sigma_scale": s["loop"], "visual_axis_sigma_scale": s["visual loop"]},
     )
     est, _, ape = _run(records, cfg)
     edges: dict[str, dict] = {}
@@ -254,7 +255,7 @@ def test_axis_sigma_scale_reaches_every_factor_kind(records, config, baseline) -
         assert any(np.allclose(x, expect, rtol=1e-12, atol=0) for x in edges["visual odometry"][(vm.i, vm.j)])
     loops = [*est.loops.accepted, *(est.visual_loops.accepted if est.visual_loops else [])]
     for lp in loops:
-        expect = axis_sigma_scaled(lp.information, s["loop"])
+        expect = axis_sigma_scaled(lp.information, s["visual loop" if type(lp).__name__ == "VisualLoop" else "loop"])
         assert any(np.allclose(x, expect, rtol=1e-12, atol=0) for x in edges["loop closure"][(lp.i, lp.j)])
     assert lid > 10 and len(est.visual_edges) > 10 and len(loops) > 0
     assert ape < baseline[2] + 0.02, (ape, baseline[2])
