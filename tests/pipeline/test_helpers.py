@@ -1136,3 +1136,37 @@ def test_axis_sigma_calibration_pools_the_runs_z_and_undoes_it():
     assert config_from_dict(out).vision.axis_sigma_scale == pytest.approx(2.0)
     assert axis_sigma_calibration(runs, min_measurements=1)["loop"]["axis_sigma_scale"] == pytest.approx(0.5)
     assert config_from_dict(out).loop.visual_axis_sigma_scale == pytest.approx(0.9)
+
+
+def test_calibrate_axis_script_writes_a_config_and_refuses_bad_input(tmp_path):
+    """``benchmarks/calibrate_axis.py``: benchmark rows in, a loadable config out; a file that
+    is not JSON, or a run without ``factor_consistency``, is one line naming the file, exit 1."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from jaxslam.pipeline._config import load_config
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "calibrate_axis.py"
+    rows = [{"factor_consistency": {"lidar odometry": {"measurements": 400, "axis_z_rms": 1.5}}}]
+    good = tmp_path / "runs.json"
+    good.write_text(json.dumps(rows))
+    out = tmp_path / "cal.yaml"
+
+    def run(*files):
+        return subprocess.run(
+            [sys.executable, str(script), *map(str, files), "-o", str(out)], capture_output=True, text=True
+        )
+
+    ok = run(good)
+    assert ok.returncode == 0, ok.stderr
+    assert load_config(out).lidar.axis_sigma_scale == pytest.approx(1.5)
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    empty = tmp_path / "empty.json"
+    empty.write_text(json.dumps([{"ape_rmse_m": 0.01}]))
+    for f, words in ((bad, "expected a JSON file"), (empty, "no factor_consistency"), (tmp_path / "gone.json", "gone")):
+        r = run(good, f)
+        assert r.returncode == 1 and str(f.name) in r.stderr and words in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
