@@ -234,12 +234,13 @@ def _preintegrate_lanes(
     params: PreintegrationParams,
     one: Array,
     isotropic: bool = False,
+    block_lanes: int = _BLOCK_LANES,
 ) -> tuple[Array, Array, Array, Array]:
     """``acc``/``gyro`` (K, M, 3), ``dt``/``use`` (K, M), ``bias_hat`` (K, 6) -> the lane
     results: preintegrated (K, 9), bias Jacobian (K, 9, 6), covariance (K, 9, 9), dt (K,).
-    ``one`` is a runtime 1.0 (see :func:`_fence`)."""
+    ``one`` is a runtime 1.0 (see :func:`_fence`); at most ``block_lanes`` lanes per block."""
     k = dt.shape[0]
-    blocks = -(-k // _BLOCK_LANES)
+    blocks = -(-k // block_lanes)
     lanes = -(-k // blocks)
     pad = blocks * lanes - k
 
