@@ -163,6 +163,7 @@ def preintegrate(
     params: PreintegrationParams,
     bias_hat: Any = None,
     mask: Any = None,
+    parallel: bool = True,
 ) -> PreintegratedImu:
     """Preintegrate a batch of intervals at once (tangent preintegration, GTSAM 4.3).
 
@@ -174,6 +175,7 @@ def preintegrate(
       params: noise densities (:class:`PreintegrationParams`).
       bias_hat: ``(6,)`` or ``(*batch, 6)`` bias (acc, gyro) to integrate with; default 0.
       mask: optional ``(*batch, M)`` bool, True for the samples to use.
+      parallel: False keeps a large batch in one call on the calling thread (see below).
 
     All intervals are integrated at once by one jitted kernel, vectorised over the
     flattened batch (the intervals are SIMD lanes; ``lax.scan`` only over the samples of the
@@ -209,7 +211,7 @@ def preintegrate(
         raise ValueError(f"bias_hat must have shape (6,) or (*batch, 6) with batch {batch}, got {bshape}")
     concrete = _is_concrete(acc, gyro, dt, mask, bias_hat, *jax.tree_util.tree_leaves(params))
     k = int(np.prod(batch)) if batch else 1
-    if concrete and k >= PARALLEL_MIN_INTERVALS and _workers() > 1:
+    if parallel and concrete and k >= PARALLEL_MIN_INTERVALS and _workers() > 1:
         out = _preintegrate_parts(acc, gyro, dt, mask, bias_hat, params, batch, k)
     else:
         out = _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()), _isotropic(params))

@@ -684,6 +684,10 @@ def test_parallel_parts_equal_the_single_call(monkeypatch, synthetic, kitti):
     iv = kitti["iv"]
     got_kitti = preintegrate(iv.acc, iv.gyro, iv.dt, kitti["params"], bias_hat=kitti["bias_hat"], mask=iv.mask)
     assert calls == [6, len(iv)]
+    one = preintegrate(s["acc"], s["gyro"], s["dt"], s["params"], bias_hat=s["bias_hat"], parallel=False)
+    assert calls == [6, len(iv)]  # parallel=False: one call on this thread
+    for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(s["ours"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert got.batch_shape == (3, 2)
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(s["ours"])):
         np.testing.assert_allclose(np.asarray(a).reshape(np.shape(b)), np.asarray(b), rtol=1e-15, atol=0)
