@@ -119,6 +119,7 @@ def main() -> None:
                             "sequence_duration_s",
                             "degenerate_scans",
                             "lidar_scans",
+                            "lidar_scans_held_still",
                             "loops_accepted",
                             "visual_loops_accepted",
                             "visual_loops_blurred",

@@ -218,6 +218,21 @@ class Estimator:
         sigma = self.cfg.rig.accelerometer_noise_density / np.sqrt(float(np.median(dt)))
         return bool(np.all(np.std(acc, axis=0) < cfg.zupt_noise_ratio * sigma))
 
+    def _standing_still(self, t: float, pred: NavState) -> bool:
+        """``LidarConfig.hold_still``: the IMU samples just before ``t`` show neither motion
+        (the zero-velocity test) nor a turn (bias-corrected rate below ``hold_still_rate``)."""
+        lcfg = self.cfg.lidar
+        if not lcfg.hold_still or self.lidar is None or self.lidar.last is None:
+            return False
+        window = self.cfg.imu.zupt_min_seconds + 0.05
+        if t - window < self.imu.t[0]:
+            return False
+        acc, gyro, dt, _ = self.imu.interval(t - window, t)
+        if not self._stationary(acc, dt):
+            return False
+        rate = np.sum(gyro * dt[:, None], axis=0) / np.sum(dt) - pred.bias[3:]
+        return bool(np.linalg.norm(rate) < lcfg.hold_still_rate)
+
     def _tag(self, kind: str, factor: Any) -> Any:
         """Keep every factor with its kind (``prior``, ``imu``, ``bias``, ``zupt``, ``lidar``,
         ``vision``, ``direction``, ``loop``): ``jaxslam tune`` re-weights the final graph by kind."""
@@ -332,7 +347,13 @@ class Estimator:
             T_odom_pred = self._odom_pose(cur, pred)
             try:
                 result = self.lidar.process(
-                    t, scan.points, scan.t + scan.point_times, (times, poses), T_odom_pred, intensity=scan.intensity
+                    t,
+                    scan.points,
+                    scan.t + scan.point_times,
+                    (times, poses),
+                    T_odom_pred,
+                    intensity=scan.intensity,
+                    still=self._standing_still(t, pred),
                 )
             except InputFormatError as e:
                 self.warnings[f"lidar: scan rejected ({e})"] += 1
@@ -504,7 +525,7 @@ class Estimator:
                     T_n = host.inverse(old.scan.T_odom) @ scan.T_odom
                     self.edges.append(("lidar odometry", k - n, k, T_n, info))
                     factors.append(self._tag("lidar", _between(k - n, k, T_n, info)))
-            elif self.lidar is not None:
+            elif self.lidar is not None and not (scan is not None and scan.held):
                 self.warnings["lidar: keyframe without odometry factor"] += 1
         self.timing["imu"] += time.perf_counter() - tk
         # vision: features + relative pose to the previous keyframe image, in a worker thread

@@ -46,6 +46,9 @@ class ScanResult:
     (drift-free along the axis too) over the scans after it."""
     reflectivity: np.ndarray | None = None
     """Relative reflectivity of ``points`` (N,), NaN where none; None without intensity."""
+    held: bool = False
+    """Not registered: the vehicle stood still and the scan kept the predicted pose
+    (``LidarConfig.hold_still``)."""
 
 
 def information_for_factor(
@@ -110,6 +113,7 @@ class LidarOdometry:
         self.continued = 0  # registrations given a second run of iterations
         self._failures = 0  # consecutive failed registrations
         self._weak: list[int] = []  # numbers of the axis-weak scans, ascending
+        self.held = 0  # scans kept at the predicted pose while standing still
 
     def weak_run(self, first: int, last: int) -> int:
         """Longest run of consecutive axis-weak scans numbered ``first`` to ``last``
@@ -138,10 +142,13 @@ class LidarOdometry:
         body_motion,
         T_odom_pred: np.ndarray,
         intensity: np.ndarray | None = None,
+        still: bool = False,
     ) -> ScanResult:
         """``body_motion``: (times (K,), poses (K, 4, 4)) of the body in any fixed frame over
         the scan (IMU-propagated); ``point_times`` absolute (s); ``T_odom_pred`` the predicted
-        body pose at ``t_ref`` in the odometry frame; ``intensity`` (N,) the raw returns."""
+        body pose at ``t_ref`` in the odometry frame; ``intensity`` (N,) the raw returns;
+        ``still``: the vehicle stands still, so the scan keeps ``T_odom_pred`` unregistered
+        (once a map exists)."""
         cfg = self.cfg
         times, poses = body_motion
         lid = poses @ self.T_bl
@@ -160,8 +167,10 @@ class LidarOdometry:
         src, src_r = voxel_downsample(pts, cfg.voxel, refl)
         T_init = T_odom_pred @ self.T_bl
         reg: Registration | None = None
-        if len(self.map) == 0:
+        held = still and len(self.map) > 0
+        if len(self.map) == 0 or held:
             T_l = T_init
+            self.held += int(held)
         else:
             reg = register(src, self.map, T_init, self.icp, source_intensity=src_r if use_i else None)
             if not reg.converged and reg.iterations >= self.icp.max_iterations:
@@ -181,7 +190,10 @@ class LidarOdometry:
         # the odometry loses its anchoring along the axis (body x, the direction of travel)
         # when a weak direction has a large x-translation component (a weak pitch + height
         # combination near a wall does not)
-        axis_weak = reg is None or not reg.converged or any(abs(w[3]) > 0.5 for w in reg.weak_directions)
+        # (a held scan's pose is the last one's: standing still keeps the axis as it was)
+        axis_weak = not held and (
+            reg is None or not reg.converged or any(abs(w[3]) > 0.5 for w in reg.weak_directions)
+        )
         if axis_weak:
             self._last_degenerate = self.processed
             self._weak.append(self.processed)
@@ -198,6 +210,7 @@ class LidarOdometry:
             self.processed - 1,
             self._last_degenerate,
             body_r if use_i else None,
+            held,
         )
         self.last = res
         return res

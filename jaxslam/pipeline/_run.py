@@ -294,6 +294,7 @@ def run_recording(
         "sequence_duration_s": float(min(t_end, est.t_last) - t_begin) if est.t_first is not None else 0.0,
         "degenerate_scans": lidar.degenerate if lidar else 0,
         "lidar_scans": lidar.processed if lidar else 0,
+        "lidar_scans_held_still": lidar.held if lidar else 0,
         "loops_accepted": len(accepted_loops(est)),
         "loops_rejected": (len(est.loops.rejected) if est.loops else 0)
         + (len(est.visual_loops.rejected) if est.visual_loops else 0),

@@ -943,6 +943,36 @@ def test_failed_registrations_stay_out_of_the_local_map():
     assert odo._failures == 0
 
 
+def test_a_still_scan_keeps_the_predicted_pose_and_goes_into_the_map():
+    """``lidar.hold_still``: a scan taken standing still is not registered; it keeps the
+    predicted pose exactly, goes into the map there, is not counted as axis-weak (so long
+    pairs across a standstill stay anchored) and is counted; the first scan (no map yet)
+    and a moving one register as before."""
+    from jaxslam.pipeline._lidar_frontend import LidarOdometry
+
+    rng = np.random.default_rng(7)
+    odo = LidarOdometry(PipelineConfig().lidar, np.eye(4))
+    motion = (np.array([0.0, 0.1]), np.stack([np.eye(4)] * 2))
+
+    def scan(t: float, T_pred: np.ndarray, still: bool):
+        pts = _room_scan(rng)
+        return odo.process(t, pts, np.full(len(pts), t), (motion[0] + t, motion[1]), T_pred, still=still)
+
+    first = scan(0.0, np.eye(4), still=True)
+    assert first.registration is None and not first.held and odo.held == 0
+    size = len(odo.map)
+    T_pred = host.make_pose(np.eye(3), np.array([0.004, 0.0, 0.0]))  # the IMU's drift standing
+    for k in range(1, 3):  # inserted on the usual schedule (every ``map_every``-th scan)
+        held = scan(0.1 * k, T_pred, still=True)
+        assert held.held and held.registration is None and odo.held == k
+        np.testing.assert_array_equal(held.T_odom, T_pred)
+    assert len(odo.map) > size
+    assert odo.weak_run(held.index, held.index) == 0 and held.last_degenerate == first.index
+    moving = scan(0.3, host.make_pose(np.eye(3), np.array([0.05, -0.03, 0.02])), still=False)
+    assert not moving.held and moving.registration.converged
+    assert np.linalg.norm(moving.T_odom[:3, 3] - T_pred[:3, 3]) < 0.01
+
+
 def test_factor_consistency_scores_each_front_end_against_ground_truth():
     """Closed form: LiDAR errors drawn at exactly their stated sigma give NEES ~1 and an axis
     z RMS ~1; visual errors twice their sigma give ~4 and ~2; the along-axis z uses the
