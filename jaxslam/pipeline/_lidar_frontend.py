@@ -191,9 +191,7 @@ class LidarOdometry:
         # when a weak direction has a large x-translation component (a weak pitch + height
         # combination near a wall does not)
         # (a held scan's pose is the last one's: standing still keeps the axis as it was)
-        axis_weak = not held and (
-            reg is None or not reg.converged or any(abs(w[3]) > 0.5 for w in reg.weak_directions)
-        )
+        axis_weak = not held and (reg is None or not reg.converged or any(abs(w[3]) > 0.5 for w in reg.weak_directions))
         if axis_weak:
             self._last_degenerate = self.processed
             self._weak.append(self.processed)
