@@ -139,11 +139,14 @@ class LidarConfig:
     hold_still: bool = False
     """While the IMU says the vehicle stands still (the last ``imu.zupt_min_seconds`` + 0.05 s
     of samples pass the zero-velocity test of ``imu.zupt`` and the bias-corrected turn rate
-    is below ``hold_still_rate``), a scan is not registered: it keeps the IMU-predicted pose
-    (no motion) and goes into the map there. Scan-to-map ICP against the sparse first scans
+    is below ``hold_still_rate``), a scan is not registered: it keeps the last scan's pose
+    (not the IMU prediction, which drifts with the estimated velocity) and goes into the map
+    there. Scan-to-map ICP against the sparse first scans
     slides along a tunnel (uneven seed 13: the scans of the standing start registered 1.2-3.3
     cm ahead of the first, not flagged weak), and what it inserts there offsets the map the
     moving scans register to. Held scans are counted (``lidar_scans_held_still``)."""
+    hold_still_start_only: bool = False
+    """Hold only at the standing start, until the first scan that is not held."""
     hold_still_rate: float = 0.01
     """Turn rate (rad/s, bias-corrected gyro mean) above which a vehicle is not still: a turn
     on the spot shakes the accelerometer no more than standing does."""

@@ -224,6 +224,8 @@ class Estimator:
         lcfg = self.cfg.lidar
         if not lcfg.hold_still or self.lidar is None or self.lidar.last is None:
             return False
+        if lcfg.hold_still_start_only and self.lidar.processed > self.lidar.held + 1:
+            return False  # the vehicle has moved once (the first scan is never held)
         window = self.cfg.imu.zupt_min_seconds + 0.05
         if t - window < self.imu.t[0]:
             return False

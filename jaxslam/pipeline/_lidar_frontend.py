@@ -147,8 +147,8 @@ class LidarOdometry:
         """``body_motion``: (times (K,), poses (K, 4, 4)) of the body in any fixed frame over
         the scan (IMU-propagated); ``point_times`` absolute (s); ``T_odom_pred`` the predicted
         body pose at ``t_ref`` in the odometry frame; ``intensity`` (N,) the raw returns;
-        ``still``: the vehicle stands still, so the scan keeps ``T_odom_pred`` unregistered
-        (once a map exists)."""
+        ``still``: the vehicle stands still, so the scan keeps the last scan's pose,
+        unregistered (once a map exists)."""
         cfg = self.cfg
         times, poses = body_motion
         lid = poses @ self.T_bl
@@ -167,10 +167,13 @@ class LidarOdometry:
         src, src_r = voxel_downsample(pts, cfg.voxel, refl)
         T_init = T_odom_pred @ self.T_bl
         reg: Registration | None = None
-        held = still and len(self.map) > 0
-        if len(self.map) == 0 or held:
+        held = still and len(self.map) > 0 and self.last is not None
+        if held:  # no motion: the last scan's pose (the IMU's prediction drifts with its velocity)
+            assert self.last is not None
+            T_l = self.last.T_odom @ self.T_bl
+            self.held += 1
+        elif len(self.map) == 0:
             T_l = T_init
-            self.held += int(held)
         else:
             reg = register(src, self.map, T_init, self.icp, source_intensity=src_r if use_i else None)
             if not reg.converged and reg.iterations >= self.icp.max_iterations:
