@@ -261,6 +261,31 @@ def test_axis_sigma_scale_reaches_every_factor_kind(records, config, baseline) -
     assert ape < baseline[2] + 0.02, (ape, baseline[2])
 
 
+def test_scans_standing_still_are_held(records, config, baseline) -> None:
+    """``lidar.hold_still`` (off by default): scans taken while the IMU says the vehicle stands
+    still keep the last scan's pose unregistered; the simulated run starts standing, so its
+    first scans after the first are held, and with ``hold_still_start_only`` only those (the
+    first scan not held ends it); both runs stay accurate."""
+    assert not config.lidar.hold_still and baseline[0].lidar.held == 0
+    for start_only in (False, True):
+        est = Estimator(config.replace(lidar={"hold_still": True, "hold_still_start_only": start_only}))
+        scans: list = []
+        process = est.lidar.process
+        est.lidar.process = lambda *a, **k: scans.append(process(*a, **k)) or scans[-1]
+        for r in records:
+            est.feed(r)
+        res = est.finish()
+        held = [s.index for s in scans if s.held]
+        assert held and held[0] == 1 and est.lidar.held == len(held), held
+        assert all(s.registration is None for s in scans if s.held)
+        moved = next(s.index for s in scans[1:] if not s.held)
+        if start_only:
+            assert held == list(range(1, moved)), (held, moved)
+        traj = Trajectory(res["times"], SE3(jnp.asarray(host.matrix_to_params(res["poses"]))))
+        ape = ev.ape(_gt(records), traj, align="se3").stats["rmse"]
+        assert ape < baseline[2] + 0.02, (start_only, ape, baseline[2])
+
+
 def test_loop_factors_carry_their_kinds_kernel_scale(baseline, config) -> None:
     """LiDAR and visual loops share one factor group, so each loop factor holds its Cauchy
     scale per constraint: ``loop.cauchy_scale`` on LiDAR loops, ``loop.visual_cauchy_scale``
