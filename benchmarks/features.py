@@ -152,7 +152,11 @@ def timing(frame: np.ndarray, methods, repeats: int) -> dict:
     t0 = time.perf_counter()
     detect_orient()
     res["surf_detect_orient_first_call_s"] = time.perf_counter() - t0
-    calls = {"surf_detect_orient": detect_orient}
+    def surf_one_call():  # parallel=False: the descriptors in one call, for reference
+        jax.block_until_ready(surf(frame, 100.0, max_keypoints=MAXK, parallel=False))
+
+    surf_one_call()
+    calls = {"surf_detect_orient": detect_orient, "surf_one_call": surf_one_call}
     for m in methods:
         det, enh = m.split("+")[0], ("+" + m.split("+")[1]) if "+" in m else ""
         calls[m] = lambda det=det, enh=enh: run_detector(det, ENHANCE[enh](frame))
@@ -188,7 +192,7 @@ def main() -> None:
     tm = timing(frame, timed, args.repeats)
     print(f"  SURF first call (JAX compile + run): {tm['surf_first_call_s']:.1f} s")
     st = tm["stats_ms"]
-    for k in ("surf", "sift", "orb", "surf_detect_orient"):
+    for k in ("surf", "sift", "orb", "surf_detect_orient", "surf_one_call"):
         v = st[k]
         spread = f"quartiles {v['q1']:.1f}-{v['q3']:.1f}, min {v['min']:.1f}, max {v['max']:.1f}"
         print(f"  {k:<20} median {v['median']:7.1f} ms  ({spread})")
@@ -205,6 +209,7 @@ def main() -> None:
         "surf_detect_orient_ms": tm["surf_detect_orient_ms"],
         "sift_ms": tm["sift"],
         "surf_ms": tm["surf"],
+        "surf_one_call_ms": st["surf_one_call"]["median"],
         "stats_ms": st,
         "repeats": args.repeats,
         "load": os.getloadavg(),

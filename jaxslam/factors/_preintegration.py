@@ -41,10 +41,8 @@ Kalibr units (continuous-time densities), see :class:`PreintegrationParams`.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
-import os
 from typing import Any
 
 import jax
@@ -52,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .._threads import parallel_map, workers
 from ..lie import SO3
 from ._imu_kernel import _BLOCK_LANES, _preintegrate_lanes
 from ._imu_params import PreintegrationParams, _is_concrete
@@ -211,7 +210,7 @@ def preintegrate(
         raise ValueError(f"bias_hat must have shape (6,) or (*batch, 6) with batch {batch}, got {bshape}")
     concrete = _is_concrete(acc, gyro, dt, mask, bias_hat, *jax.tree_util.tree_leaves(params))
     k = int(np.prod(batch)) if batch else 1
-    if parallel and concrete and k >= PARALLEL_MIN_INTERVALS and _workers() > 1:
+    if parallel and concrete and k >= PARALLEL_MIN_INTERVALS and workers() > 1:
         out = _preintegrate_parts(acc, gyro, dt, mask, bias_hat, params, batch, k)
     else:
         out = _preintegrate_jit(acc, gyro, dt, mask, bias_hat, params, jnp.ones(()), _isotropic(params))
@@ -237,22 +236,10 @@ def preintegrate(
 # used (hand-offs between threads would cost more than they bring).
 PARALLEL_MIN_INTERVALS = 2048
 _PART_BLOCK_LANES = 128
-_POOL: concurrent.futures.ThreadPoolExecutor | None = None
-
-
-def _workers() -> int:
-    return min(os.cpu_count() or 1, 8)
 
 
 def _parts() -> int:
-    return 2 * _workers()
-
-
-def _pool() -> concurrent.futures.ThreadPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        _POOL = concurrent.futures.ThreadPoolExecutor(_parts(), thread_name_prefix="jaxslam-imu")
-    return _POOL
+    return 2 * workers()
 
 
 def _preintegrate_parts(
@@ -289,7 +276,7 @@ def _preintegrate_parts(
             _preintegrate_jit(acc[sl], gyro[sl], dt[sl], use[sl], bias[sl], params, one, iso, _PART_BLOCK_LANES)
         )
 
-    outs = list(_pool().map(part, range(parts)))
+    outs = parallel_map(part, range(parts))
     return _join(outs, k, batch)
 
 

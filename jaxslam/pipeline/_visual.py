@@ -201,7 +201,15 @@ class VisualFrontend:
         grey = img
         if cfg.enhance:
             img = np.asarray(aba_clahe(img, cfg.alpha, cfg.beta, cfg.clip))
-        kp, desc = detect_and_describe(img, cfg.detector, cfg.hessian_threshold, cfg.max_keypoints)  # type: ignore[arg-type]
+        # one call (parallel=False): the estimator already runs vision on one core beside
+        # the LiDAR front end on the other
+        kp, desc = detect_and_describe(
+            img,
+            cfg.detector,  # type: ignore[arg-type]
+            cfg.hessian_threshold,
+            cfg.max_keypoints,
+            parallel=False,
+        )
         uv = kp[:, :2].astype(np.float64)
         xn = undistort_normalized(uv, self.K, self.rig.camera_distortion)
         X, normal = self._depth(xn, points_body)

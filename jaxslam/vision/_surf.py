@@ -620,6 +620,10 @@ def describe(img, x, y, size, ang, valid, upright: bool, max_win: int):
     return jnp.zeros((n, 64), _F32).at[order].set(acc[:n])
 
 
+describe_jit = jax.jit(describe, static_argnames=("upright", "max_win"))
+""":func:`describe` compiled on its own (the descriptor parts of :func:`jaxslam.vision.surf`)."""
+
+
 def max_window(plan) -> int:
     """Largest descriptor window a keypoint of this pyramid can ask for (0 if none can be
     detected): the largest middle layer whose upper neighbour fits, plus one size step."""

@@ -271,7 +271,7 @@ def test_scans_standing_still_are_held(records, config, baseline) -> None:
         est = Estimator(config.replace(lidar={"hold_still": True, "hold_still_start_only": start_only}))
         scans: list = []
         process = est.lidar.process
-        est.lidar.process = lambda *a, **k: scans.append(process(*a, **k)) or scans[-1]
+        est.lidar.process = lambda *a, _s=scans, _p=process, **k: _s.append(_p(*a, **k)) or _s[-1]
         for r in records:
             est.feed(r)
         res = est.finish()

@@ -295,3 +295,27 @@ def test_cli_writes_one_npz_per_image(tmp_path: Path, capsys: pytest.CaptureFixt
     assert "2/2" in capsys.readouterr().out
     assert jaxslam.cli.main(["features", str(tmp_path / "missing.png"), "-o", str(out)]) == 1
     assert "no such file" in capsys.readouterr().err
+
+
+@needs_data
+def test_descriptors_in_parts_equal_one_call(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With concrete inputs the descriptors run in one part per core on a thread pool
+    (every part-th keypoint, padded to one size); the result must be one call's to the bit,
+    oriented and upright, for a cap that does not divide into the parts."""
+    from jaxslam.vision import _features
+
+    calls = []
+    parts = _features._describe_parts
+    monkeypatch.setattr(_features, "_describe_parts", lambda *a: calls.append(a[-2]) or parts(*a))
+    monkeypatch.setattr(_features, "workers", lambda: 3)
+    img = _gray(FRAME)
+    for upright in (False, True):
+        one = surf(img, 100.0, max_keypoints=1001, upright=upright, parallel=False)
+        split = surf(img, 100.0, max_keypoints=1001, upright=upright)
+        assert int(np.sum(np.asarray(one[2]))) > 500
+        for a, b in zip(one, split):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert calls == [False, True]
+    monkeypatch.setattr(_features, "workers", lambda: 1)  # one core: one call
+    surf(img, 100.0, max_keypoints=1001)
+    assert calls == [False, True]
