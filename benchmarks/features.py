@@ -152,6 +152,7 @@ def timing(frame: np.ndarray, methods, repeats: int) -> dict:
     t0 = time.perf_counter()
     detect_orient()
     res["surf_detect_orient_first_call_s"] = time.perf_counter() - t0
+
     def surf_one_call():  # parallel=False: the descriptors in one call, for reference
         jax.block_until_ready(surf(frame, 100.0, max_keypoints=MAXK, parallel=False))
 
