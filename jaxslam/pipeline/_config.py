@@ -141,10 +141,11 @@ class LidarConfig:
     of samples pass the zero-velocity test of ``imu.zupt`` and the bias-corrected turn rate
     is below ``hold_still_rate``), a scan is not registered: it keeps the last scan's pose
     (not the IMU prediction, which drifts with the estimated velocity) and goes into the map
-    there. Scan-to-map ICP against the sparse first scans
-    slides along a tunnel (uneven seed 13: the scans of the standing start registered 1.2-3.3
-    cm ahead of the first, not flagged weak), and what it inserts there offsets the map the
-    moving scans register to. Held scans are counted (``lidar_scans_held_still``)."""
+    there. Scan-to-map ICP against the sparse first scans slides along a tunnel (uneven seed
+    13: the scans of the standing start registered 1.2-3.3 cm ahead of the first, not
+    flagged weak), and what it inserts there offsets the map the moving scans register to.
+    Held scans are counted (``lidar_scans_held_still``). Off by default: it fixes uneven 13's
+    start but moves dark 12's APE from 0.037 to 0.074-0.084 m (README, session 28)."""
     hold_still_start_only: bool = False
     """Hold only at the standing start, until the first scan that is not held."""
     hold_still_rate: float = 0.01

@@ -47,7 +47,7 @@ class ScanResult:
     reflectivity: np.ndarray | None = None
     """Relative reflectivity of ``points`` (N,), NaN where none; None without intensity."""
     held: bool = False
-    """Not registered: the vehicle stood still and the scan kept the predicted pose
+    """Not registered: the vehicle stood still and the scan kept the last scan's pose
     (``LidarConfig.hold_still``)."""
 
 
@@ -113,7 +113,7 @@ class LidarOdometry:
         self.continued = 0  # registrations given a second run of iterations
         self._failures = 0  # consecutive failed registrations
         self._weak: list[int] = []  # numbers of the axis-weak scans, ascending
-        self.held = 0  # scans kept at the predicted pose while standing still
+        self.held = 0  # scans kept at the last scan's pose while standing still
 
     def weak_run(self, first: int, last: int) -> int:
         """Longest run of consecutive axis-weak scans numbered ``first`` to ``last``
