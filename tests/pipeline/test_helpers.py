@@ -943,7 +943,7 @@ def test_failed_registrations_stay_out_of_the_local_map():
     assert odo._failures == 0
 
 
-def test_a_still_scan_keeps_the_predicted_pose_and_goes_into_the_map():
+def test_a_still_scan_keeps_the_last_pose_and_goes_into_the_map():
     """``lidar.hold_still``: a scan taken standing still is not registered; it keeps the last
     scan's pose exactly (not the prediction, which drifts with the estimated velocity), goes
     into the map there, is not counted as axis-weak (so long pairs across a standstill stay
