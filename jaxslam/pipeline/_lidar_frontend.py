@@ -167,10 +167,10 @@ class LidarOdometry:
         src, src_r = voxel_downsample(pts, cfg.voxel, refl)
         T_init = T_odom_pred @ self.T_bl
         reg: Registration | None = None
-        held = still and len(self.map) > 0 and self.last is not None
-        if held:  # no motion: the last scan's pose (the IMU's prediction drifts with its velocity)
-            assert self.last is not None
-            T_l = self.last.T_odom @ self.T_bl
+        last = self.last
+        held = still and len(self.map) > 0 and last is not None
+        if held and last is not None:  # no motion: the last scan's pose (the IMU's prediction drifts)
+            T_l = last.T_odom @ self.T_bl
             self.held += 1
         elif len(self.map) == 0:
             T_l = T_init

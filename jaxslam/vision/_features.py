@@ -96,25 +96,19 @@ def surf(
             jnp.zeros((max_keypoints,), bool),
         )
     concrete = not any(isinstance(a, jax.core.Tracer) for a in (img, hessian_threshold))
-    if not (parallel and concrete and workers() > 1):
-        return surf_u8(
-            img,
-            hessian_threshold,
-            max_keypoints=max_keypoints,
-            n_octaves=n_octaves,
-            n_layers=n_layers,
-            upright=upright,
-        )
-    kp, _, valid = surf_u8(
+    split = parallel and concrete and workers() > 1  # descriptors in parts, after detection
+    kp, desc, valid = surf_u8(
         img,
         hessian_threshold,
         max_keypoints=max_keypoints,
         n_octaves=n_octaves,
         n_layers=n_layers,
         upright=upright,
-        descriptors=False,
+        descriptors=not split,
     )
-    return kp, _describe_parts(img, kp, valid, upright, max_window(layer_plan(h, w, n_octaves, n_layers))), valid
+    if split:
+        desc = _describe_parts(img, kp, valid, upright, max_window(layer_plan(h, w, n_octaves, n_layers)))
+    return kp, desc, valid
 
 
 def _describe_parts(img: jax.Array, kp: jax.Array, valid: jax.Array, upright: bool, max_win: int) -> jax.Array:
