@@ -494,10 +494,26 @@ def _rotation(cx, cy, win, ang):
     return (cx + off * cos_d) + off * sin_d, (cy - off * sin_d) + off * cos_d, sin_d, cos_d
 
 
-def _sample_window(img, quad, cx, cy, win, ang, wb: int, upright: bool):
+def _window_inside(cx, cy, win, ang, wb: int, h: int, w: int):
+    """Whether every sample of a keypoint's rotated ``wb x wb`` grid falls in the image's
+    bilinear area with a pixel to spare (so no sample needs OpenCV's border fallback). The
+    grid positions are affine in the sample indices, so the extremes are at its corners."""
+    start_x, start_y, sin_d, cos_d = _rotation(cx, cy, win, ang)
+    e = _f32(wb - 1)
+    xs = [start_x, start_x + e * sin_d, start_x + e * cos_d, (start_x + e * sin_d) + e * cos_d]
+    ys = [start_y, start_y + e * cos_d, start_y - e * sin_d, (start_y + e * cos_d) - e * sin_d]
+    lo_x, hi_x = functools.reduce(jnp.minimum, xs), functools.reduce(jnp.maximum, xs)
+    lo_y, hi_y = functools.reduce(jnp.minimum, ys), functools.reduce(jnp.maximum, ys)
+    return (lo_x >= 1) & (hi_x <= w - 3) & (lo_y >= 1) & (hi_y <= h - 3)
+
+
+def _sample_window(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: bool = False):
     """The ``wb x wb`` window of one batch of keypoints (OpenCV's rotated/bilinear or upright
     nearest extraction, 8-bit rounded); beyond ``win`` the values are finite but arbitrary
-    (their area weights are zero). ``(C, wb, wb)`` float32."""
+    (their area weights are zero). ``(C, wb, wb)`` float32. ``inside=True`` promises that
+    :func:`_window_inside` holds for every keypoint: the border fallback is left out (~1.3x
+    faster; the same formulas, though XLA may round a rare tie to the other 8-bit level:
+    4 of 1.8M samples in the test)."""
     h, w = img.shape
     flat = img.ravel()
     ii = jnp.arange(wb)[None, :, None]
@@ -517,14 +533,17 @@ def _sample_window(img, quad, cx, cy, win, ang, wb: int, upright: bool):
         py = (start_y[:, None, None] + fi * cd) - fj * sd
         fx, fy = jnp.floor(px), jnp.floor(py)
         ix, iy = fx.astype(jnp.int32), fy.astype(jnp.int32)  # float32 here (OpenCV: double)
-        inner = (ix >= 0) & (ix < w - 1) & (iy >= 0) & (iy < h - 1)
-        # Outside the bilinear area OpenCV takes the nearest clamped pixel: the same formula
-        # with zero weights at that pixel.
-        nx = jnp.clip(jnp.round(px), 0, w - 1).astype(jnp.int32)
-        ny = jnp.clip(jnp.round(py), 0, h - 1).astype(jnp.int32)
-        a = jnp.where(inner, (px - fx).astype(_F32), 0)
-        b = jnp.where(inner, (py - fy).astype(_F32), 0)
-        idx = jnp.where(inner, iy, ny) * w + jnp.where(inner, ix, nx)
+        if inside:
+            a, b, idx = px - fx, py - fy, iy * w + ix
+        else:
+            inner = (ix >= 0) & (ix < w - 1) & (iy >= 0) & (iy < h - 1)
+            # Outside the bilinear area OpenCV takes the nearest clamped pixel: the same
+            # formula with zero weights at that pixel.
+            nx = jnp.clip(jnp.round(px), 0, w - 1).astype(jnp.int32)
+            ny = jnp.clip(jnp.round(py), 0, h - 1).astype(jnp.int32)
+            a = jnp.where(inner, px - fx, 0)
+            b = jnp.where(inner, py - fy, 0)
+            idx = jnp.where(inner, iy, ny) * w + jnp.where(inner, ix, nx)
         # One gather of the packed 2x2 neighbourhood, kept apart from the index and the
         # interpolation arithmetic (the barriers steer XLA's fusion; ~1.5x faster on CPU).
         idx, a, b = lax.optimization_barrier((idx, a, b))
@@ -544,10 +563,10 @@ def _desc_weights() -> np.ndarray:
     return (g[:, None] * g[None, :]).astype(np.float32)
 
 
-def _resize_batch(img, quad, cx, cy, win, ang, wb: int, upright: bool):
+def _resize_batch(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: bool = False):
     """The ``(C, 21, 21)`` INTER_AREA-resized windows (before rounding) of a batch of
-    keypoints whose windows fit in ``wb``."""
-    W = _sample_window(img, quad, cx, cy, win, ang, wb, upright)
+    keypoints whose windows fit in ``wb`` (``inside``: see :func:`_sample_window`)."""
+    W = _sample_window(img, quad, cx, cy, win, ang, wb, upright, inside)
     A = _area_matrix(win, wb)
     # two explicit products (rows, then columns): XLA's own order for the three-operand
     # einsum is several times slower on CPU
@@ -580,18 +599,31 @@ def _patch_descriptor(g, win):
     return vec * sc[:, None]
 
 
-def describe(img, x, y, size, ang, valid, upright: bool, max_win: int):
+def describe(img, x, y, size, ang, valid, upright: bool, max_win: int, fast_inside: bool = True):
     """Descriptors ``(N, 64)`` of the keypoints. Keypoints are sorted by window size; each
     static window class runs a loop (dynamic trip count) over chunks of its own keypoints,
-    with chunks of about ``CHUNK_SAMPLES`` window samples; the loops write into one buffer."""
+    with chunks of about ``CHUNK_SAMPLES`` window samples; the loops write into one buffer.
+    Within a class, rotated windows that lie inside the image come first, so that whole
+    chunks of them skip the border fallback (``fast_inside=False`` never skips it; the
+    descriptors agree to ~1e-5)."""
     n = x.shape[0]
     s = _scale(size)
     win = jnp.where(valid, (_f32(PATCH_SZ + 1) * s).astype(jnp.int32), 0)
     classes = _window_classes(max_win)
     bounds = jnp.asarray(classes, jnp.int32)
     cls = jnp.where(valid, jnp.searchsorted(bounds, win, side="left"), len(classes))
-    order = jnp.argsort(cls, stable=True)
-    scls = cls[order]
+    split = fast_inside and not upright
+    if not split:
+        border = jnp.zeros(n, jnp.int32)
+    else:
+        wb_kp = bounds[jnp.minimum(cls, len(classes) - 1)]
+        border = jnp.ones(n, bool)
+        for wb in classes:  # each keypoint's grid at its own class size
+            border = jnp.where(wb_kp == wb, ~_window_inside(x, y, win, ang, wb, *img.shape), border)
+        border = border.astype(jnp.int32)
+    key = 2 * cls + border  # class, then inside (0) before border (1)
+    order = jnp.argsort(key, stable=True)
+    skey = key[order]
     cmax = max(max(1, CHUNK_SAMPLES // (wb * wb)) for wb in classes)
 
     def prep(a):
@@ -602,25 +634,33 @@ def describe(img, x, y, size, ang, valid, upright: bool, max_win: int):
     acc = jnp.zeros((n + cmax, 64), _F32)
     for c, wb in enumerate(classes):
         csz = max(1, CHUNK_SAMPLES // (wb * wb))
-        lo = jnp.searchsorted(scls, c, side="left").astype(jnp.int32)
-        hi = jnp.searchsorted(scls, c, side="right").astype(jnp.int32)
+        lo = jnp.searchsorted(skey, 2 * c, side="left").astype(jnp.int32)
+        mid = jnp.searchsorted(skey, 2 * c, side="right").astype(jnp.int32)
+        hi = jnp.searchsorted(skey, 2 * c + 1, side="right").astype(jnp.int32)
 
-        def body(it, acc, lo=lo, hi=hi, csz=csz, wb=wb):
+        def body(it, acc, lo=lo, hi=hi, csz=csz, wb=wb, inside=False):
             start = lo + it * csz
             bx, by, bw, ba = (lax.dynamic_slice(a, (start,), (csz,)) for a in (cx, cy, wn, an))
             mine = start + jnp.arange(csz, dtype=jnp.int32) < hi
-            bw = jnp.where(mine, bw, 1)
-            g = _resize_batch(img, quad, bx, by, bw, ba, wb, upright)
+            # rows past the segment repeat its first row (their results are dropped), so
+            # that every row of a chunk of inside windows is inside too
+            bx, by, bw, ba = (jnp.where(mine, a, a[0]) for a in (bx, by, bw, ba))
+            g = _resize_batch(img, quad, bx, by, bw, ba, wb, upright, inside)
             d = _patch_descriptor(g, bw)
             z = jnp.int32(0)
             old = lax.dynamic_slice(acc, (start, z), (csz, 64))
             return lax.dynamic_update_slice(acc, jnp.where(mine[:, None], d, old), (start, z))
 
-        acc = lax.fori_loop(0, (hi - lo + csz - 1) // csz, body, acc)
+        if split:  # the inside windows of this class, then those at the border
+            fast = functools.partial(body, lo=lo, hi=mid, inside=True)
+            acc = lax.fori_loop(0, (mid - lo + csz - 1) // csz, fast, acc)
+            acc = lax.fori_loop(0, (hi - mid + csz - 1) // csz, functools.partial(body, lo=mid), acc)
+        else:
+            acc = lax.fori_loop(0, (hi - lo + csz - 1) // csz, body, acc)
     return jnp.zeros((n, 64), _F32).at[order].set(acc[:n])
 
 
-describe_jit = jax.jit(describe, static_argnames=("upright", "max_win"))
+describe_jit = jax.jit(describe, static_argnames=("upright", "max_win", "fast_inside"))
 """:func:`describe` compiled on its own (the descriptor parts of :func:`jaxslam.vision.surf`)."""
 
 

@@ -319,3 +319,53 @@ def test_descriptors_in_parts_equal_one_call(monkeypatch: pytest.MonkeyPatch) ->
     monkeypatch.setattr(_features, "workers", lambda: 1)  # one core: one call
     surf(img, 100.0, max_keypoints=1001)
     assert calls == [False, True]
+
+
+@needs_data
+def test_inside_windows_skip_the_border_fallback_with_the_same_numbers() -> None:
+    """Rotated windows that lie inside the image are sampled without OpenCV's border
+    fallback. ``_window_inside`` must be conservative (every sample of a window it passes is
+    in the bilinear area), that sampling must equal the general one (up to a rare tie that
+    rounds to the other 8-bit level), and whole descriptor sets must agree with
+    ``fast_inside=False`` (the chunks also hold other keypoints, so the area products may
+    round differently in the last bits)."""
+    import jax
+
+    from jaxslam.vision._surf import _sample_window, _window_inside, describe_jit, layer_plan, max_window, pack_quads
+
+    img = _gray(FRAME)
+    h, w = img.shape
+    rng = np.random.default_rng(3)
+    n, wb = 400, 92
+    cx = rng.uniform(-20, w + 20, n).astype(np.float32)
+    cy = rng.uniform(-20, h + 20, n).astype(np.float32)
+    win = rng.integers(60, wb + 1, n).astype(np.int32)
+    ang = rng.uniform(0, 360, n).astype(np.float32)
+    inside = np.asarray(_window_inside(*map(jnp.asarray, (cx, cy, win, ang)), wb, h, w))
+    assert 50 < inside.sum() < n - 50
+    # brute force: every grid sample of a passed window has its 2x2 neighbourhood in the image
+    i, j = np.meshgrid(np.arange(wb, dtype=np.float32), np.arange(wb, dtype=np.float32), indexing="ij")
+    off = -((win - 1).astype(np.float32) / np.float32(2))
+    rad = ang * np.float32(np.pi / 180)
+    s, c = -np.sin(rad), np.cos(rad)
+    sx, sy = (cx + off * c) + off * s, (cy - off * s) + off * c
+    px = sx[:, None, None] + i * s[:, None, None] + j * c[:, None, None]
+    py = sy[:, None, None] + i * c[:, None, None] - j * s[:, None, None]
+    ok = ((px >= 0) & (px < w - 1) & (py >= 0) & (py < h - 1)).all(axis=(1, 2))
+    assert np.all(ok[inside])
+    gimg = jnp.asarray(img)
+    quad = pack_quads(gimg)
+    sel = [jnp.asarray(a[inside]) for a in (cx, cy, win, ang)]
+    fast = jax.jit(lambda *a: _sample_window(gimg, quad, *a, wb, False, inside=True))(*sel)
+    general = jax.jit(lambda *a: _sample_window(gimg, quad, *a, wb, False))(*sel)
+    diff = np.abs(np.asarray(fast) - np.asarray(general))
+    # the same formulas in another fusion: XLA may round a tie to the other 8-bit level
+    assert diff.max() <= 1 and np.mean(diff > 0) < 1e-5
+
+    kp, _, valid = surf_u8(gimg, 100.0, max_keypoints=2048, descriptors=False)
+    mw = max_window(layer_plan(h, w, 4, 3))
+    cols = (kp[:, 0], kp[:, 1], kp[:, 2], kp[:, 3], valid)
+    a = np.asarray(describe_jit(gimg, *cols, upright=False, max_win=mw))
+    b = np.asarray(describe_jit(gimg, *cols, upright=False, max_win=mw, fast_inside=False))
+    assert int(np.sum(np.asarray(valid))) > 1000
+    np.testing.assert_allclose(a, b, atol=1e-5, rtol=0)
