@@ -635,24 +635,23 @@ def describe(img, x, y, size, ang, valid, upright: bool, max_win: int, fast_insi
     """Descriptors ``(N, 64)`` of the keypoints. Keypoints are sorted by window size; each
     static window class runs a loop (dynamic trip count) over chunks of its own keypoints,
     with chunks of about ``CHUNK_SAMPLES`` window samples; the loops write into one buffer.
-    Within a class, rotated windows that lie inside the image come first, so that whole
-    chunks of them skip the border fallback (``fast_inside=False`` never skips it; the
-    descriptors agree to ~1e-5)."""
+    Within a class of windows up to half the image's shorter side, rotated windows that lie
+    inside the image come first, so that whole chunks of them skip the border fallback
+    (``fast_inside=False`` never skips it; the descriptors agree to ~1e-5)."""
     n = x.shape[0]
     s = _scale(size)
     win = jnp.where(valid, (_f32(PATCH_SZ + 1) * s).astype(jnp.int32), 0)
     classes = _window_classes(max_win)
     bounds = jnp.asarray(classes, jnp.int32)
     cls = jnp.where(valid, jnp.searchsorted(bounds, win, side="left"), len(classes))
-    split = fast_inside and not upright
-    if not split:
-        border = jnp.zeros(n, jnp.int32)
-    else:
-        wb_kp = bounds[jnp.minimum(cls, len(classes) - 1)]
-        border = jnp.ones(n, bool)
-        for wb in classes:  # each keypoint's grid at its own class size
-            border = jnp.where(wb_kp == wb, ~_window_inside(x, y, win, ang, wb, *img.shape), border)
-        border = border.astype(jnp.int32)
+    # Classes whose windows often lie inside the image get a second loop without the border
+    # fallback (each costs compile time; larger windows are mostly at the border).
+    fast = [] if upright or not fast_inside else [wb for wb in classes if 2 * wb <= min(img.shape)]
+    border = jnp.zeros(n, bool)
+    wb_kp = bounds[jnp.minimum(cls, len(classes) - 1)]
+    for wb in fast:  # each keypoint's grid at its own class size
+        border = jnp.where(wb_kp == wb, ~_window_inside(x, y, win, ang, wb, *img.shape), border)
+    border = border.astype(jnp.int32)
     key = 2 * cls + border  # class, then inside (0) before border (1)
     order = jnp.argsort(key, stable=True)
     skey = key[order]
@@ -683,9 +682,9 @@ def describe(img, x, y, size, ang, valid, upright: bool, max_win: int, fast_insi
             old = lax.dynamic_slice(acc, (start, z), (csz, 64))
             return lax.dynamic_update_slice(acc, jnp.where(mine[:, None], d, old), (start, z))
 
-        if split:  # the inside windows of this class, then those at the border
-            fast = functools.partial(body, lo=lo, hi=mid, inside=True)
-            acc = lax.fori_loop(0, (mid - lo + csz - 1) // csz, fast, acc)
+        if wb in fast:  # the inside windows of this class, then those at the border
+            inside = functools.partial(body, lo=lo, hi=mid, inside=True)
+            acc = lax.fori_loop(0, (mid - lo + csz - 1) // csz, inside, acc)
             acc = lax.fori_loop(0, (hi - mid + csz - 1) // csz, functools.partial(body, lo=mid), acc)
         else:
             acc = lax.fori_loop(0, (hi - lo + csz - 1) // csz, body, acc)
