@@ -180,7 +180,7 @@ def preintegrate(
     flattened batch (the intervals are SIMD lanes; ``lax.scan`` only over the samples of the
     rotation recurrence and of the transition matrices, see the kernel notes above); it
     compiles once per (batch, M) shape. A concrete batch of at least
-    ``PARALLEL_MIN_INTERVALS`` intervals is cut into two equal parts per core, run on a
+    ``PARALLEL_MIN_INTERVALS`` intervals is cut into one equal part per core, run on a
     thread pool so that all cores work (the same numbers to 1 ulp). The result equals
     GTSAM's sample-by-sample loop to rounding (~1e-15 relative). Raises ``ValueError`` for
     mismatched shapes and, when the inputs are concrete arrays, for a used sample with
@@ -231,15 +231,17 @@ def preintegrate(
 # first), while calls from separate threads run side by side. The parts use smaller blocks
 # of lanes than the single call. On the KITTI stream (4696 intervals, 2-core AMD EPYC, one
 # process, 25 interleaved rounds): one call 12.9 ms; 4 parts of 128-lane blocks 9.9 ms
-# (256: 10.4, 512: 10.9), 2 parts 9.9 ms; the same numbers to 1 ulp. Parts are padded to
-# one shape (one compile); below ``PARALLEL_MIN_INTERVALS`` intervals the single call is
-# used (hand-offs between threads would cost more than they bring).
+# (256: 10.4, 512: 10.9), 2 parts 9.9 ms; the same numbers to 1 ulp. One part per core:
+# in three later A/Bs (40 interleaved rounds each) 2 parts took 12.6 / 11.3 / 13.9 ms
+# against 13.5 / 11.7 / 14.3 for 4 (3 parts 12.7 / 14.4, 8 parts 11.9 / 15.1). Parts are
+# padded to one shape (one compile); below ``PARALLEL_MIN_INTERVALS`` intervals the single
+# call is used (hand-offs between threads would cost more than they bring).
 PARALLEL_MIN_INTERVALS = 2048
 _PART_BLOCK_LANES = 128
 
 
 def _parts() -> int:
-    return 2 * workers()
+    return workers()
 
 
 def _preintegrate_parts(

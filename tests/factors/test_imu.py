@@ -671,7 +671,7 @@ def test_parallel_parts_equal_the_single_call(monkeypatch, synthetic, kitti):
     calls = []
     parts = _imu._preintegrate_parts
     monkeypatch.setattr(_imu, "_preintegrate_parts", lambda *a: calls.append(a[-1]) or parts(*a))
-    monkeypatch.setattr(_imu, "workers", lambda: 2)  # 4 parts: 6 intervals need padding
+    monkeypatch.setattr(_imu, "workers", lambda: 4)  # 4 parts: 6 intervals need padding
     s = synthetic
     shape = (3, 2, *s["acc"].shape[1:])
     got = preintegrate(
