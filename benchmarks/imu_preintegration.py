@@ -59,6 +59,18 @@ def load_kitti() -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
     return data[1:, 0], data[1:, 2:5], data[1:, 5:8], meta
 
 
+def kitti_params(meta: dict[str, float]) -> PreintegrationParams:
+    """jaxslam's parameters from the metadata sigmas (the same as :func:`gtsam_params`)."""
+    return PreintegrationParams.make_shared_u(
+        GRAVITY,
+        accelerometer_noise_density=meta["AccelerometerSigma"],
+        gyroscope_noise_density=meta["GyroscopeSigma"],
+        integration_sigma=meta["IntegrationSigma"],
+        accelerometer_random_walk=meta["AccelerometerBiasSigma"],
+        gyroscope_random_walk=meta["GyroscopeBiasSigma"],
+    )
+
+
 def gtsam_params(meta: dict[str, float]) -> gtsam.PreintegrationParams:
     p = gtsam.PreintegrationParams.MakeSharedU(GRAVITY)
     p.setAccelerometerCovariance(np.eye(3) * meta["AccelerometerSigma"] ** 2)
@@ -144,14 +156,7 @@ def main(argv: list[str] | None = None) -> dict:
     iv = cut_imu_stream(t, acc, gyro, kf)
     cut_s = time.perf_counter() - t0
     n_int, n_samples = len(iv), iv.num_samples
-    params = PreintegrationParams.make_shared_u(
-        GRAVITY,
-        accelerometer_noise_density=meta["AccelerometerSigma"],
-        gyroscope_noise_density=meta["GyroscopeSigma"],
-        integration_sigma=meta["IntegrationSigma"],
-        accelerometer_random_walk=meta["AccelerometerBiasSigma"],
-        gyroscope_random_walk=meta["GyroscopeBiasSigma"],
-    )
+    params = kitti_params(meta)
 
     # --- ours: compile, then steady state --------------------------------------------------
     t0 = time.perf_counter()

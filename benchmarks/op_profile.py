@@ -104,20 +104,13 @@ def kernel(target: str) -> Callable[[], object]:
         return lambda: describe_jit(img, *cols, upright=False, max_win=mw)
     if target == "imu":
         sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from imu_preintegration import BIAS_HAT, GRAVITY, load_kitti  # needs gtsam's data
+        from imu_preintegration import BIAS_HAT, kitti_params, load_kitti  # needs gtsam's data
 
-        from jaxslam.factors import PreintegrationParams, cut_imu_stream, preintegrate
+        from jaxslam.factors import cut_imu_stream, preintegrate
 
         t, acc, gyro, meta = load_kitti()
         iv = cut_imu_stream(t, acc, gyro, np.arange(t[0], t[-1], 0.1))
-        params = PreintegrationParams.make_shared_u(
-            GRAVITY,
-            accelerometer_noise_density=meta["AccelerometerSigma"],
-            gyroscope_noise_density=meta["GyroscopeSigma"],
-            integration_sigma=meta["IntegrationSigma"],
-            accelerometer_random_walk=meta["AccelerometerBiasSigma"],
-            gyroscope_random_walk=meta["GyroscopeBiasSigma"],
-        )
+        params = kitti_params(meta)
         return lambda: preintegrate(iv.acc, iv.gyro, iv.dt, params, BIAS_HAT, iv.mask, parallel=False)
     raise SystemExit(f"op_profile: unknown target {target!r} (expected one of {', '.join(TARGETS)})")
 
