@@ -19,6 +19,7 @@ import jaxslam.cli
 from jaxslam.errors import InputFormatError, JaxSlamError
 from jaxslam.vision import detect_and_describe, surf
 from jaxslam.vision._surf import (
+    _area_band,
     _area_matrix,
     _keypoint_order,
     _lexsort_keypoints,
@@ -152,6 +153,22 @@ def test_window_classes_hold_every_window() -> None:
         cl = _window_classes(max_win)
         assert list(cl) == sorted(set(cl)) and cl[0] == 28 and cl[-1] >= max_win
         assert all(c % 4 == 0 for c in cl) and all(b <= 1.3 * a for a, b in itertools.pairwise(cl))
+
+
+@pytest.mark.parametrize("wb", [92, 164, 740])
+def test_area_bands_hold_every_nonzero_weight(wb: int) -> None:
+    """The banded INTER_AREA (sampling only each output row's band of window rows) must hold
+    every nonzero weight of the dense matrix, with the same value, for every window size of a
+    class: scattered back, the bands equal the dense ``21 x wb`` matrix exactly."""
+    win = np.arange(max(1, wb // 2), wb + 1, dtype=np.int32)
+    rows, wts = (np.asarray(a) for a in _area_band(jnp.asarray(win), wb))
+    assert rows.min() >= 0 and rows.max() < wb
+    dense = np.asarray(_area_matrix(jnp.asarray(win), wb))
+    rebuilt = np.zeros_like(dense)
+    c, p, _ = np.indices(rows.shape)
+    np.add.at(rebuilt, (c, p, rows), wts)
+    np.testing.assert_array_equal(rebuilt, dense)
+    assert np.all(dense.sum(-1) > 0.99)  # every output row has its support
 
 
 def _repeatability(kp_a, kp_b, M, shape_b, px=2.5):
