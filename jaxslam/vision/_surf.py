@@ -48,6 +48,7 @@ PATCH_SZ = 20
 CHUNK_SAMPLES = 96 * 96 * 16  # window samples per descriptor chunk
 WINDOW_CLASS_STEP = 1.2  # ratio of consecutive descriptor window classes
 BAND_MIN_WINDOW = 92  # window classes from here up sample only the INTER_AREA row bands
+SAMPLE_COLUMNS = 8  # window rows are sampled in multiples of this many columns (vector width)
 
 _F32 = jnp.float32
 _f32 = np.float32
@@ -580,18 +581,20 @@ def _window_inside(cx, cy, win, ang, wb: int, h: int, w: int):
     return (lo_x >= 1) & (hi_x <= w - 3) & (lo_y >= 1) & (hi_y <= h - 3)
 
 
-def _sample_window(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: bool = False, rows=None):
+def _sample_window(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: bool = False, rows=None, cols=None):
     """The ``wb x wb`` window of one batch of keypoints (OpenCV's rotated/bilinear or upright
     nearest extraction, 8-bit rounded); beyond ``win`` the values are finite but arbitrary
     (their area weights are zero). ``(C, wb, wb)`` float32, or ``(C, R, wb)`` with ``rows``
-    ``(C, R)``: those rows of each window only (in ``[0, wb)``). ``inside=True`` promises that
+    ``(C, R)``: those rows of each window only (in ``[0, wb)``). ``cols > wb`` pads each row
+    with copies of column ``wb - 1`` (for vector loops without a scalar tail; a padded
+    column is beyond ``win`` and has zero weight). ``inside=True`` promises that
     :func:`_window_inside` holds for every keypoint: the border fallback is left out (~1.3x
     faster; the same formulas, though XLA may round a rare tie to the other 8-bit level:
     4 of 1.8M samples in the test)."""
     h, w = img.shape
     flat = img.ravel()
     ii = jnp.arange(wb)[None, :, None] if rows is None else rows[:, :, None]
-    jj = jnp.arange(wb)[None, None, :]
+    jj = jnp.minimum(jnp.arange(cols or wb), wb - 1)[None, None, :]
     off = -((win - 1).astype(_F32) / _f32(2))
     if upright:
         sx = jnp.round(cx + off).astype(jnp.int32)[:, None, None]
@@ -644,18 +647,19 @@ def _resize_batch(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: b
     ``wb + 42`` rows, some twice) and reduced with its few weights, instead of a dense
     ``21 x wb`` product over all ``wb`` rows (21 multiply-adds a sample)."""
     hi = lax.Precision.HIGHEST
+    cols = -(-wb // SAMPLE_COLUMNS) * SAMPLE_COLUMNS
     A = _area_matrix(win, wb)
     if wb >= BAND_MIN_WINDOW:
         rows, wts = _area_band(win, wb)  # (C, 21, L)
         c, m, band = rows.shape
-        W = _sample_window(img, quad, cx, cy, win, ang, wb, upright, inside, rows.reshape(c, m * band))
-        T = jnp.einsum("cpl,cplj->cpj", wts, W.reshape(c, m, band, wb), precision=hi)
+        W = _sample_window(img, quad, cx, cy, win, ang, wb, upright, inside, rows.reshape(c, m * band), cols)
+        T = jnp.einsum("cpl,cplj->cpj", wts, W.reshape(c, m, band, cols), precision=hi)
     else:
-        W = _sample_window(img, quad, cx, cy, win, ang, wb, upright, inside)
+        W = _sample_window(img, quad, cx, cy, win, ang, wb, upright, inside, cols=cols)
         # two explicit products (rows, then columns): XLA's own order for the three-operand
         # einsum is several times slower on CPU
         T = jnp.einsum("cpi,cij->cpj", A, W, precision=hi)
-    return jnp.einsum("cpj,cqj->cpq", T, A, precision=hi)
+    return jnp.einsum("cpj,cqj->cpq", T, A if cols == wb else _area_matrix(win, cols), precision=hi)
 
 
 def _patch_descriptor(g, win):
