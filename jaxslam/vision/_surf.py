@@ -202,20 +202,28 @@ def _det_trace(S, planes: dict, lp: dict):
 
 
 def _nms26(below, here, above, threshold, m: int):
-    """``(rows - 2m, cols - 2m)`` bool over the cells at least ``m >= 1`` from the border:
-    ``here`` above ``threshold`` and strictly greater than its 26 neighbours in the three
-    layers (3x3x3). One fused pass of shifted slices (``reduce_window`` is slow on CPU);
-    no padding or index masks, which would make XLA:CPU's loop scalar (~8x slower)."""
+    """The responses of ``here`` that are 3x3x3 maxima, over the cells at least ``m >= 1``
+    from the border: ``(start, resp)``, ``resp`` 1-D over the flat (row-major) layer from
+    index ``start`` to the last such cell, ``-inf`` where a cell is not above ``threshold``
+    and strictly greater than its 26 neighbours in the three layers, or lies in the margin.
+    One fused pass over the flattened layers, whose neighbours are contiguous slices at
+    fixed offsets: no padding, and no 2-D slices flattened afterwards (XLA:CPU fuses such a
+    flattening into the loop, which then runs over a linear index with divisions and scalar
+    loads: 4.5 -> 2.9 ms with the top-k for a full-resolution layer on one core);
+    ``reduce_window`` is slow on CPU."""
     rows, cols = here.shape
-    hr, wr = rows - 2 * m, cols - 2 * m
-    c = here[m : m + hr, m : m + wr]
+    start, end = m * cols + m, (rows - m - 1) * cols + cols - m
+    flat = [x.ravel() for x in (below, here, above)]
+    c = flat[1][start:end]
     ok = c > threshold
-    for layer, name in ((below, 0), (here, 1), (above, 2)):
+    for name, layer in enumerate(flat):
         for di in range(-1, 2):
             for dj in range(-1, 2):
                 if (name, di, dj) != (1, 0, 0):
-                    ok = ok & (c > layer[m + di : m + di + hr, m + dj : m + dj + wr])
-    return ok
+                    o = di * cols + dj
+                    ok = ok & (c > layer[start + o : end + o])
+    col = (jnp.arange(end - start, dtype=jnp.int32) + start) % cols
+    return start, jnp.where(ok & (col >= m) & (col < cols - m), c, -jnp.inf)
 
 
 def _det3(m00, m01, m02, m10, m11, m12, m20, m21, m22):
@@ -251,10 +259,9 @@ def _octave_keypoints(Ds, Ts, lps: list, threshold, cap: int):
         hr, wr = max(rows - 2 * m, 0), max(cols - 2 * m, 0)
         kr = min(cap, hr * wr)
         if kr > 0:  # candidates inside the margin, then their index in the whole layer
-            cand = _nms26(Ds[k - 1], Ds[k], Ds[k + 1], threshold, m)
-            top, ir = lax.top_k(jnp.where(cand, Ds[k][m : m + hr, m : m + wr], -jnp.inf).ravel(), kr)
-            ir = ir.astype(jnp.int32)
-            idx = (ir // wr + m) * cols + ir % wr + m
+            start, resp = _nms26(Ds[k - 1], Ds[k], Ds[k + 1], threshold, m)
+            top, ir = lax.top_k(resp, kr)  # row-major order: ties as OpenCV's scan
+            idx = ir.astype(jnp.int32) + start
         else:
             top, idx = jnp.zeros((0,), _F32), jnp.zeros((0,), jnp.int32)
         top = jnp.pad(top, (0, cap - kr), constant_values=-jnp.inf)

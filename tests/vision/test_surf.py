@@ -23,6 +23,7 @@ from jaxslam.vision._surf import (
     _area_matrix,
     _keypoint_order,
     _lexsort_keypoints,
+    _nms26,
     _window_classes,
     _window_members,
     fast_atan2_deg,
@@ -153,6 +154,28 @@ def test_window_classes_hold_every_window() -> None:
         cl = _window_classes(max_win)
         assert list(cl) == sorted(set(cl)) and cl[0] == 28 and cl[-1] >= max_win
         assert all(c % 4 == 0 for c in cl) and all(b <= 1.3 * a for a, b in itertools.pairwise(cl))
+
+
+@pytest.mark.parametrize(("shape", "m"), [((40, 53), 1), ((40, 53), 5), ((9, 70), 3)])
+def test_nms_equals_brute_force(shape: tuple[int, int], m: int) -> None:
+    """The flat 3x3x3 NMS: a cell at least ``m`` from the border is kept (with its response)
+    iff it is above the threshold and strictly above all 26 neighbours; ties (values on a
+    coarse grid) and the margin included."""
+    rng = np.random.default_rng(m)
+    layers = [np.round(rng.normal(size=shape) * 3).astype(np.float32) for _ in range(3)]
+    start, resp = _nms26(*map(jnp.asarray, layers), 1.0, m)
+    got = np.full(shape[0] * shape[1], -np.inf, np.float32)
+    got[start : start + resp.shape[0]] = np.asarray(resp)
+    want = np.full(shape, -np.inf, np.float32)
+    stack = np.stack(layers)
+    for i in range(m, shape[0] - m):
+        for j in range(m, shape[1] - m):
+            c = stack[1, i, j]
+            block = stack[:, i - 1 : i + 2, j - 1 : j + 2].ravel()
+            if c > 1.0 and np.sum(block >= c) == 1:
+                want[i, j] = c
+    assert np.isfinite(want).sum() >= 3
+    np.testing.assert_array_equal(got, want.ravel())
 
 
 @pytest.mark.parametrize("wb", [92, 164, 740])
