@@ -453,14 +453,16 @@ def orientation(S, x, y, size, valid, one):
     py = jnp.round((y[:, None] + _f32(pts[None, :, 1]) * s[:, None]) - off[:, None]).astype(jnp.int32)
     G, Hf = g[:, None], half[:, None]
     inb = (py >= 0) & (py < hs - G) & (px >= 0) & (px < ws - G) & valid[:, None]
-    base = jnp.where(inb, py * ws + px, 0)
-    # the eight integral-image corners of the two Haar boxes: one gather, (n, 113, 8)
+    # each sample's first corner, stored once (exact in float32: < 2^24) for the eight
+    # gathers below; fused into them, XLA recomputed it per corner
+    base = (jnp.where(inb, py * ws + px, 0).astype(_F32) / one).astype(jnp.int32)
+    flat = S.ravel()
+    # the eight integral-image corners of the two Haar boxes, (n, 113) each
     z = jnp.zeros_like(g)
-    corner = ((z, z), (z, half), (z, g), (half, z), (half, g), (g, z), (g, half), (g, g))
-    offs = jnp.stack([dy * ws + dx for dy, dx in corner], -1)
-    idx = lax.optimization_barrier(base[:, :, None] + offs[:, None, :])
-    corners = lax.optimization_barrier(S.ravel().at[idx].get(mode="promise_in_bounds"))
-    c00, c0h, c0g, ch0, chg, cg0, cgh, cgg = (corners[..., k] for k in range(8))
+    c00, c0h, c0g, ch0, chg, cg0, cgh, cgg = (
+        flat.at[base + (dy * ws + dx)[:, None]].get(mode="promise_in_bounds")
+        for dy, dx in ((z, z), (z, half), (z, g), (half, z), (half, g), (g, z), (g, half), (g, g))
+    )
     area = (Hf * G).astype(_F32)
     w_neg, w_pos = _f32(-1) / area, _f32(1) / area
     left = c00 + cgh - cg0 - c0h
