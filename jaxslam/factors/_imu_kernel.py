@@ -245,14 +245,18 @@ def _preintegrate_lanes(
     pad = blocks * lanes - k
 
     def split(x: Array) -> Array:
+        """(K, ...) -> lanes-last blocks (blocks, ..., lanes), transposed here once: inside
+        the block loop XLA fused the transposition into every consumer, whose loops then
+        read across lanes and were left scalar."""
         x = jnp.concatenate([x, jnp.zeros((pad, *x.shape[1:]), x.dtype)]) if pad else x
-        return x.reshape(blocks, lanes, *x.shape[1:])
+        return jnp.moveaxis(x.reshape(blocks, lanes, *x.shape[1:]), 1, -1)
 
     outs = lax.map(
         lambda b: _preintegrate_block(b[0], b[1], b[2], b[3], b[4], params, one, isotropic),
         tuple(split(x) for x in (acc, gyro, dt, use, bias_hat)),
     )
-    return tuple(o.reshape(blocks * lanes, *o.shape[2:])[:k] for o in outs)  # type: ignore[return-value]
+    # (blocks, ..., lanes) -> (K, ...), the results' one transposition
+    return tuple(jnp.moveaxis(o, -1, 1).reshape(blocks * lanes, *o.shape[1:-1])[:k] for o in outs)  # type: ignore[return-value]
 
 
 def _preintegrate_block(
@@ -265,7 +269,9 @@ def _preintegrate_block(
     one: Array,
     isotropic: bool = False,
 ) -> tuple[Array, Array, Array, Array]:
-    """One block of lanes, the arguments and results of :func:`_preintegrate_lanes`.
+    """One block of lanes, lanes last: ``acc``/``gyro`` (M, 3, K), ``dt``/``use`` (M, K),
+    ``bias_hat`` (6, K) -> preintegrated (9, K), bias Jacobian (9, 6, K), covariance
+    (9, 9, K), dt (K,) (see :func:`_preintegrate_lanes`).
 
     Same result as GTSAM's per-sample ``TangentPreintegration::update`` +
     ``PreintegratedImuMeasurements::integrateMeasurement`` loop, with the linear recurrences
@@ -273,16 +279,20 @@ def _preintegrate_block(
     ``H = -sum_k Phi_k [B_k | C_k]`` and ``P = sum_k Phi_k (B Qa/dt B^T + C Qg/dt C^T +
     E Qi dt E^T)_k Phi_k^T``, so only theta (forwards) and Phi (backwards) are sequential.
     """
-    k, m = dt.shape
-    use_l = jnp.transpose(use)  # (M, K)
+    m, k = dt.shape
     # Bias-corrected readings (M, 3, K); unused slots become exact no-ops: a = w = dt = 0.
-    a = jnp.where(use_l[:, None], jnp.transpose(acc - bias_hat[:, None, 0:3], (1, 2, 0)), 0.0)
-    w = jnp.where(use_l[:, None], jnp.transpose(gyro - bias_hat[:, None, 3:6], (1, 2, 0)), 0.0)
-    dt_l = jnp.where(use_l, jnp.transpose(dt), 0.0)
-    inv_dt = jnp.where(use_l, 1.0 / jnp.where(use_l, dt_l, 1.0), 0.0)
+    a = jnp.where(use[:, None], acc - bias_hat[None, 0:3], 0.0)
+    w = jnp.where(use[:, None], gyro - bias_hat[None, 3:6], 0.0)
+    dt_l = jnp.where(use, dt, 0.0)
+    inv_dt = jnp.where(use, 1.0 / jnp.where(use, dt_l, 1.0), 0.0)
+    # Stored once per block: fused into their consumers, the block's slice of the inputs
+    # is taken inside each loop, whose index XLA:CPU reloads per element (LLVM cannot
+    # prove the loop's stores leave it unchanged), and those loops stay scalar.
+    a, w, dt_l, inv_dt = _fence((a, w, dt_l, inv_dt), one)
 
-    # 1. theta before each sample (forward scan).
-    theta_end, theta = lax.scan(_theta_step, jnp.zeros((3, k)), (w, dt_l))
+    # 1. theta before each sample (forward scan). Both scans store each step's sample first
+    # (the fence; a scan slices its inputs like the block loop above).
+    theta_end, theta = lax.scan(lambda th, smp: _theta_step(th, _fence(smp, one)), jnp.zeros((3, k)), (w, dt_l))
 
     # 2. per-sample blocks.
     blk = _sample_blocks(theta, a, w, dt_l, one)
@@ -293,7 +303,9 @@ def _preintegrate_block(
     # 3. transitions Phi_k (backward scan).
     coef = jnp.stack([jnp.zeros_like(dt_l), 0.5 * dt_l + t_after, jnp.ones_like(dt_l)], axis=1)  # (M, 3, K)
     init = jnp.concatenate([jnp.broadcast_to(jnp.eye(3)[None, :, :, None], (1, 3, 3, k)), jnp.zeros((2, 3, 3, k))])
-    _, phi = lax.scan(_transition_step, init, (blk["f"], blk["g"], coef), reverse=True)
+    _, phi = lax.scan(
+        lambda p, smp: _transition_step(p, _fence(smp, one)), init, (blk["f"], blk["g"], coef), reverse=True
+    )
     phi = phi.reshape(m, 9, 3, k)  # rows [Pi; X; Y]
 
     # 4. sums over the samples: Phi_k B_k = [0; R wp; R dt],  Phi_k C_k = [Pi; X; Y] C_rot =: Z_k.
@@ -336,9 +348,4 @@ def _preintegrate_block(
     dpdv = jnp.concatenate([_total(a_nav * _v(wp)), _total(a_nav * _v(dt_l))])
     preint = jnp.concatenate([theta_end, dpdv])  # (9, K)
     hb = jnp.concatenate([h_acc, h_gyro], axis=1)  # (9, 6, K)
-    return (
-        jnp.transpose(preint),
-        jnp.transpose(hb, (2, 0, 1)),
-        jnp.transpose(cov_g + acc_cov, (2, 0, 1)),
-        _total(dt_l),
-    )
+    return preint, hb, cov_g + acc_cov, _total(dt_l)
