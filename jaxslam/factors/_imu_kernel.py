@@ -221,7 +221,8 @@ def _transition_step(phi: Array, sample: tuple[Array, Array, Array]) -> tuple[Ar
 # Lanes per block: the kernel runs block by block (lax.map) so that its temporaries, about
 # 2 kB per sample, stay in cache and the per-call scratch memory stays small (large fresh
 # allocations cost page faults on every call). On the KITTI stream (4696 intervals, same
-# process, interleaved): 256 lanes 14.7 ms, 512 12.7, 1024 11.5, 2048 12.4, one block 23 ms.
+# process, interleaved): 256 lanes 14.7 ms, 512 12.7, 1024 11.5, 2048 12.4, one block 23 ms;
+# after the lanes-last inputs and fences (session 30): 256 11.4, 512 10.5, 1024 10.6, 2048 11.9.
 _BLOCK_LANES = 1024
 
 
