@@ -31,3 +31,30 @@ def test_ops_are_summed_per_call_from_the_trace() -> None:
 def test_unknown_target_is_one_line() -> None:
     with pytest.raises(SystemExit, match="unknown target 'nope'"):
         op_profile.kernel("nope")
+
+
+def test_loop_kinds_read_the_llvm_ir_dump(tmp_path: Path) -> None:
+    vector = "\n".join(
+        [
+            "vector.body:",
+            "  %a = load <8 x float>, ptr %p, align 4",
+            "  %b = fmul <8 x float> %a, %a",
+            "  %c = fadd <8 x float> %b, %a",
+            "  store <8 x float> %c, ptr %q, align 4",
+        ]
+    )
+    scalar = "\n".join(["  %a = load float, ptr %p, align 4", "  %b = fmul float %a, %a", "  store float %b, ptr %q"])
+    assert op_profile.loop_kind(vector) == "vector"
+    assert op_profile.loop_kind(scalar) == "scalar"
+    # one file per fused op and program; the program with the most kernels wins a shared name
+    (tmp_path / "module_0002.jit_main.fusion.3_kernel_module.ir-with-opt.ll").write_text(vector)
+    (tmp_path / "module_0002.jit_main.fusion_kernel_module.ir-with-opt.ll").write_text(scalar)
+    (tmp_path / "module_0004.jit_join.fusion.3_kernel_module.ir-with-opt.ll").write_text(scalar)
+    (tmp_path / "module_0002.jit_main.fusion.3_kernel_module.ir-no-opt.ll").write_text(scalar)
+    assert op_profile.loop_kinds(tmp_path) == {"fusion.3": "vector", "fusion": "scalar"}
+
+
+def test_loops_flag_refuses_a_started_backend() -> None:
+    jax.block_until_ready(jnp.ones(3) + 1)
+    with pytest.raises(SystemExit, match="before JAX starts"):
+        op_profile.main(["imu", "--loops"])
