@@ -593,8 +593,9 @@ def _window_inside(cx, cy, win, ang, wb: int, h: int, w: int):
 def _sample_window(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: bool = False, rows=None, cols=None):
     """The ``wb x wb`` window of one batch of keypoints (OpenCV's rotated/bilinear or upright
     nearest extraction, 8-bit rounded); beyond ``win`` the values are finite but arbitrary
-    (their area weights are zero). ``(C, wb, wb)`` float32, or ``(C, R, wb)`` with ``rows``
-    ``(C, R)``: those rows of each window only (in ``[0, wb)``). ``cols > wb`` pads each row
+    (their area weights are zero). ``(C, wb, cols)`` float32 (``cols`` defaults to ``wb``), or
+    ``(C, R, cols)`` with ``rows`` ``(C, R)``: those rows of each window only (in ``[0, wb)``).
+    ``cols > wb`` pads each row
     with copies of column ``wb - 1`` (for vector loops without a scalar tail; a padded
     column is beyond ``win`` and has zero weight). ``inside=True`` promises that
     :func:`_window_inside` holds for every keypoint: the border fallback is left out (~1.3x
@@ -657,7 +658,6 @@ def _resize_batch(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: b
     ``21 x wb`` product over all ``wb`` rows (21 multiply-adds a sample)."""
     hi = lax.Precision.HIGHEST
     cols = -(-wb // SAMPLE_COLUMNS) * SAMPLE_COLUMNS
-    A = _area_matrix(win, wb)
     if wb >= BAND_MIN_WINDOW:
         rows, wts = _area_band(win, wb)  # (C, 21, L)
         c, m, band = rows.shape
@@ -667,8 +667,8 @@ def _resize_batch(img, quad, cx, cy, win, ang, wb: int, upright: bool, inside: b
         W = _sample_window(img, quad, cx, cy, win, ang, wb, upright, inside, cols=cols)
         # two explicit products (rows, then columns): XLA's own order for the three-operand
         # einsum is several times slower on CPU
-        T = jnp.einsum("cpi,cij->cpj", A, W, precision=hi)
-    return jnp.einsum("cpj,cqj->cpq", T, A if cols == wb else _area_matrix(win, cols), precision=hi)
+        T = jnp.einsum("cpi,cij->cpj", _area_matrix(win, wb), W, precision=hi)
+    return jnp.einsum("cpj,cqj->cpq", T, _area_matrix(win, cols), precision=hi)
 
 
 def _patch_descriptor(g, win):
