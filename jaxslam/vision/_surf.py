@@ -511,19 +511,24 @@ def _window_classes(max_win: int) -> tuple[int, ...]:
     return tuple(out)
 
 
-def _area_weights(win, sidx):
-    """OpenCV ``INTER_AREA`` weights (``computeResizeAreaTab``) from ``win`` samples to 21,
-    evaluated at the sample indices ``sidx`` (float64, broadcastable against ``(..., 21, 1)``;
-    zero off each output's support or beyond ``win``), float32."""
+def _area_support(win):
+    """OpenCV's ``computeResizeAreaTab`` terms from ``win`` samples to 21, each ``(..., 21, 1)``
+    float64: ``f1``, ``f2`` (an output's interval), ``cw`` (its width), ``s1``, ``s2`` (its
+    first whole sample and its last sample)."""
     m = PATCH_SZ + 1
     n = win.astype(jnp.float64)[..., None, None]
     scale = 1.0 / (m / n)
-    d = jnp.arange(m, dtype=jnp.float64).reshape((1,) * (n.ndim - 2) + (m, 1))
-    f1 = d * scale
+    f1 = jnp.arange(m, dtype=jnp.float64).reshape((1,) * (n.ndim - 2) + (m, 1)) * scale
     f2 = f1 + scale
-    cw = jnp.minimum(scale, n - f1)
     s2 = jnp.minimum(jnp.floor(f2), n - 1)
-    s1 = jnp.minimum(jnp.ceil(f1), s2)
+    return f1, f2, jnp.minimum(scale, n - f1), jnp.minimum(jnp.ceil(f1), s2), s2
+
+
+def _area_weights(win, sidx):
+    """OpenCV ``INTER_AREA`` weights from ``win`` samples to 21, evaluated at the sample
+    indices ``sidx`` (float64, broadcastable against ``(..., 21, 1)``; zero off each output's
+    support or beyond ``win``), float32."""
+    f1, f2, cw, s1, s2 = _area_support(win)
     left = jnp.where((sidx == s1 - 1) & (s1 - f1 > 1e-3), (s1 - f1) / cw, 0.0)
     full = jnp.where((sidx >= s1) & (sidx < s2), 1.0 / cw, 0.0)
     right = jnp.where((sidx == s2) & (f2 - s2 > 1e-3), jnp.minimum(jnp.minimum(f2 - s2, 1.0), cw) / cw, 0.0)
@@ -547,13 +552,8 @@ def _area_band(win, wb: int):
     """Each ``INTER_AREA`` output row's band of window rows: ``(rows, weights)``, both
     ``(C, 21, L)`` (``L`` = :func:`_band_length`). Rows are clamped to the ``wb`` grid; a
     clamped row is off its output's support, and its weight (from the unclamped index) is 0."""
-    m = PATCH_SZ + 1
-    n = win.astype(jnp.float64)[:, None]
-    scale = 1.0 / (m / n)
-    f1 = jnp.arange(m, dtype=jnp.float64)[None] * scale
-    s1 = jnp.minimum(jnp.ceil(f1), jnp.minimum(jnp.floor(f1 + scale), n - 1))
-    start = jnp.maximum(s1 - 1, 0)  # (C, 21)
-    sidx = start[..., None] + jnp.arange(_band_length(wb), dtype=jnp.float64)[None, None]
+    s1 = _area_support(win)[3]  # (C, 21, 1)
+    sidx = jnp.maximum(s1 - 1, 0) + jnp.arange(_band_length(wb), dtype=jnp.float64)[None, None]
     rows = jnp.minimum(sidx, wb - 1).astype(jnp.int32)
     return rows, _area_weights(win, sidx)
 
