@@ -61,14 +61,7 @@ def load_kitti() -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
 
 def kitti_params(meta: dict[str, float]) -> PreintegrationParams:
     """jaxslam's parameters from the metadata sigmas (the same as :func:`gtsam_params`)."""
-    return PreintegrationParams.make_shared_u(
-        GRAVITY,
-        accelerometer_noise_density=meta["AccelerometerSigma"],
-        gyroscope_noise_density=meta["GyroscopeSigma"],
-        integration_sigma=meta["IntegrationSigma"],
-        accelerometer_random_walk=meta["AccelerometerBiasSigma"],
-        gyroscope_random_walk=meta["GyroscopeBiasSigma"],
-    )
+    return PreintegrationParams.from_gtsam_metadata(meta, GRAVITY)
 
 
 def gtsam_params(meta: dict[str, float]) -> gtsam.PreintegrationParams:

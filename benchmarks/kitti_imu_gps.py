@@ -174,14 +174,7 @@ def build_problem(data: dict[str, Any], max_fixes: int | None = None, gps_every:
         fix = fix[:max_fixes]
     t_fix = data["gps_t"][fix]
     meta = data["meta"]
-    params = PreintegrationParams.make_shared_u(
-        GRAVITY,
-        accelerometer_noise_density=meta["AccelerometerSigma"],
-        gyroscope_noise_density=meta["GyroscopeSigma"],
-        integration_sigma=meta["IntegrationSigma"],
-        accelerometer_random_walk=meta["AccelerometerBiasSigma"],
-        gyroscope_random_walk=meta["GyroscopeBiasSigma"],
-    )
+    params = PreintegrationParams.from_gtsam_metadata(meta, GRAVITY)
     iv = cut_imu_stream(t, data["acc"], data["gyro"], t_fix)
     t0 = time.perf_counter()
     pim = jax.block_until_ready(preintegrate(iv.acc, iv.gyro, iv.dt, params, mask=iv.mask))

@@ -45,6 +45,16 @@ def _covariance_matrix(name: str, value: Any) -> np.ndarray:
     return cov
 
 
+# GTSAM's example IMU metadata (``KittiEquivBiasedImu_metadata.txt``) -> our densities
+_GTSAM_METADATA = {
+    "AccelerometerSigma": "accelerometer_noise_density",
+    "GyroscopeSigma": "gyroscope_noise_density",
+    "IntegrationSigma": "integration_sigma",
+    "AccelerometerBiasSigma": "accelerometer_random_walk",
+    "GyroscopeBiasSigma": "gyroscope_random_walk",
+}
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class PreintegrationParams:
@@ -147,6 +157,17 @@ class PreintegrationParams:
     def make_shared_d(cls, g: float = 9.81, **densities: Any) -> PreintegrationParams:
         """Z-down navigation frame (NED): gravity ``(0, 0, g)``, GTSAM's ``MakeSharedD``."""
         return cls.create(gravity=(0.0, 0.0, float(g)), **densities)
+
+    @classmethod
+    def from_gtsam_metadata(cls, meta: dict[str, float], g: float = 9.81) -> PreintegrationParams:
+        """Z-up parameters from GTSAM's example IMU metadata (the header/value lines of
+        ``KittiEquivBiasedImu_metadata.txt`` as a dict): ``AccelerometerSigma``,
+        ``GyroscopeSigma``, ``IntegrationSigma``, ``AccelerometerBiasSigma``,
+        ``GyroscopeBiasSigma``. A missing name raises :class:`ConfigError`."""
+        missing = [k for k in _GTSAM_METADATA if k not in meta]
+        if missing:
+            raise ConfigError(f"IMU metadata lacks {', '.join(missing)} (has {', '.join(meta) or 'nothing'})")
+        return cls.make_shared_u(g, **{ours: meta[theirs] for theirs, ours in _GTSAM_METADATA.items()})
 
     def bias_random_walk_sigmas(self, delta_time: Any) -> Array:
         """Per-interval bias drift sigmas ``(*batch, 6)`` (acc then gyro; m/s^2, rad/s):

@@ -152,14 +152,7 @@ def kitti(gtsam):
         meta = dict(zip(fh.readline().split(), (float(v) for v in fh.readline().split())))
     t, acc, gyro = data[1:, 0], data[1:, 2:5], data[1:, 5:8]  # row 0 is 1.9 s before row 1
     iv = cut_imu_stream(t, acc, gyro, np.arange(t[0], t[0] + 120.0, 0.1))
-    params = PreintegrationParams.make_shared_u(
-        GRAVITY,
-        accelerometer_noise_density=meta["AccelerometerSigma"],
-        gyroscope_noise_density=meta["GyroscopeSigma"],
-        integration_sigma=meta["IntegrationSigma"],
-        accelerometer_random_walk=meta["AccelerometerBiasSigma"],
-        gyroscope_random_walk=meta["GyroscopeBiasSigma"],
-    )
+    params = PreintegrationParams.from_gtsam_metadata(meta, GRAVITY)
     bias_hat = np.tile([0.02, -0.03, 0.05, 1e-3, -2e-3, 5e-4], (len(iv), 1))
     ours = preintegrate(iv.acc, iv.gyro, iv.dt, params, bias_hat=bias_hat, mask=iv.mask)
     p = gtsam_params(
@@ -595,6 +588,31 @@ def test_preintegrate_rejects_bad_shapes_and_values():
         preintegrate(_with(acc, (1, 3, 0), np.nan), acc, dt, params)
     with pytest.raises(ValueError, match=r"gyro\[0, 0\] is not finite"):
         preintegrate(acc, _with(acc, (0, 0, 2), np.inf), dt, params)
+
+
+def test_params_from_gtsam_metadata():
+    """GTSAM's example metadata names map onto the densities one by one (Z-up gravity); a
+    missing name is a ConfigError naming it."""
+    meta = {
+        "AccelerometerSigma": 0.01,
+        "GyroscopeSigma": 2e-4,
+        "IntegrationSigma": 1e-3,
+        "AccelerometerBiasSigma": 3e-4,
+        "GyroscopeBiasSigma": 4e-5,
+    }
+    got = PreintegrationParams.from_gtsam_metadata(meta, 9.8)
+    want = PreintegrationParams.make_shared_u(
+        9.8,
+        accelerometer_noise_density=0.01,
+        gyroscope_noise_density=2e-4,
+        integration_sigma=1e-3,
+        accelerometer_random_walk=3e-4,
+        gyroscope_random_walk=4e-5,
+    )
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ConfigError, match="IntegrationSigma"):
+        PreintegrationParams.from_gtsam_metadata({k: v for k, v in meta.items() if k != "IntegrationSigma"})
 
 
 def test_params_and_factor_constructors_reject_bad_input():
