@@ -266,16 +266,35 @@ class _Group:
         return idx
 
     def subset(self, idx: np.ndarray) -> Factor:
-        leaves = [s if b is None else b[idx] for s, b in zip(self.shared, self.buffers)]
-        return jax.tree_util.tree_unflatten(self.treedef, leaves)
+        return jax.tree_util.tree_unflatten(self.treedef, self.subset_leaves(idx))
+
+    def subset_leaves(self, idx: np.ndarray) -> list[Any]:
+        return [s if b is None else b[idx] for s, b in zip(self.shared, self.buffers)]
 
 
-@jax.jit
-def _linearize_batch(
-    factor: Factor, params: tuple[jax.Array, ...], mask: jax.Array
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    lin = linearize(factor, params, mask)
-    return jnp.concatenate(lin.jacobians, axis=2), lin.residual, lin.cost
+_KERNELS: dict[Any, Any] = {}  # factor treedef -> its jitted linearisation
+
+
+def _linearize_kernel(treedef: Any) -> Any:
+    """The jitted linearisation of one factor class, on its flat leaves: ``(leaves, params,
+    mask) -> (m, rdim * T + rdim + 1)`` rows ``[J | r | cost]``. Taking the leaves (not a
+    factor object) skips building and flattening a factor per call, and one output is one
+    transfer (8 rows of ``BetweenFactor`` on Pose3, loaded machine: 130-160 us per call
+    against 165-177 us through a factor pytree and three outputs; the arithmetic is the
+    same, results equal to the bit)."""
+    kernel = _KERNELS.get(treedef)
+    if kernel is not None:
+        return kernel
+
+    @jax.jit
+    def kernel(leaves: list[Any], params: tuple[jax.Array, ...], mask: jax.Array) -> jax.Array:
+        lin = linearize(jax.tree_util.tree_unflatten(treedef, leaves), params, mask)
+        J = jnp.concatenate(lin.jacobians, axis=2)
+        m = J.shape[0]
+        return jnp.concatenate([J.reshape(m, -1), lin.residual, lin.cost[:, None]], axis=1)
+
+    _KERNELS[treedef] = kernel
+    return kernel
 
 
 @jax.jit
@@ -491,17 +510,19 @@ class IncrementalSolver:
         J = np.empty((len(idx), g.rdim, g.T))
         r = np.empty((len(idx), g.rdim))
         cost = 0.0
+        kernel = _linearize_kernel(g.treedef)
+        nj = g.rdim * g.T
         for lo, hi, cap in _chunks(len(idx), self.config.chunk_sizes):
             pidx = _pad_rows(idx[lo:hi], cap)
             params = tuple(
                 getattr(self._store_list[s], "x_lin" if at == "lin" else "x")[g.rows[pidx, k]]
                 for k, s in enumerate(g.slots)
             )
-            Jc, rc, cc = _linearize_batch(g.subset(pidx), params, np.arange(cap) < hi - lo)
-            J[lo:hi] = np.asarray(Jc)[: hi - lo]
-            r[lo:hi] = np.asarray(rc)[: hi - lo]
-            if want_cost:
-                cost += float(np.asarray(cc).sum())
+            out = np.asarray(kernel(g.subset_leaves(pidx), params, np.arange(cap) < hi - lo))
+            J[lo:hi] = out[: hi - lo, :nj].reshape(hi - lo, g.rdim, g.T)
+            r[lo:hi] = out[: hi - lo, nj:-1]
+            if want_cost:  # over the padded rows too (masked: 0), summed as before
+                cost += float(np.ascontiguousarray(out[:, -1]).sum())
         return J, r, cost
 
     def _relinearize(self, gi: int, idx: np.ndarray) -> None:
