@@ -36,7 +36,28 @@ except ImportError:  # pragma: no cover
     HAVE_CHOLMOD = False
 
 
-_BLAS_CONTROLLER: Any = None
+_BLAS_LIBS: list[Any] | None = None  # threadpoolctl's controllers of the loaded BLAS libraries
+
+
+class _OneBlasThread:
+    """Each loaded BLAS at one thread inside, its thread count restored after: the two
+    calls per library that ``ThreadpoolController.limit`` makes, without its bookkeeping
+    (5 us against 32 us per use here; the solver enters it once per dense factorisation)."""
+
+    def __init__(self, libs: list[Any]):
+        self.libs = libs
+        self.saved: list[tuple[Any, int]] = []
+
+    def __enter__(self) -> None:
+        self.saved = [(lib, lib.num_threads) for lib in self.libs]
+        for lib, n in self.saved:
+            if n != 1:
+                lib.set_num_threads(1)
+
+    def __exit__(self, *exc: object) -> None:
+        for lib, n in self.saved:
+            if n != 1:
+                lib.set_num_threads(n)
 
 
 def one_blas_thread() -> Any:
@@ -44,15 +65,16 @@ def one_blas_thread() -> Any:
     hundred unknowns) run 10-100x slower when BLAS threads contend with JAX's on a loaded
     2-core CPU (measured on the KITTI IMU+GPS stream: 89 ms vs 0.07 ms per 165x165 Cholesky);
     CHOLMOD's supernodal factorisation of sphere2500 (15k dofs) was as fast or faster on one
-    thread than on two on this shared machine."""
-    global _BLAS_CONTROLLER
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:  # pragma: no cover - threadpoolctl is a core dependency
-        return contextlib.nullcontext()
-    if _BLAS_CONTROLLER is None:
-        _BLAS_CONTROLLER = ThreadpoolController()
-    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
+    thread than on two on this shared machine. The libraries are those loaded at the first
+    call (numpy's, scipy's and CHOLMOD's are by then)."""
+    global _BLAS_LIBS
+    if _BLAS_LIBS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:  # pragma: no cover - threadpoolctl is a core dependency
+            return contextlib.nullcontext()
+        _BLAS_LIBS = list(ThreadpoolController().select(user_api="blas").lib_controllers)
+    return _OneBlasThread(_BLAS_LIBS)
 
 
 class NotPositiveDefinite(Exception):

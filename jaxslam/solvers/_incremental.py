@@ -985,7 +985,7 @@ class IncrementalSolver:
         """``solve(rhs)`` by a dense Cholesky factorisation of the (full, symmetric) ``H``."""
         try:
             # OpenBLAS factorises below 64 unknowns on one thread anyway; above, limit it
-            # (the context costs ~40 us, so only where it matters)
+            # (the context costs ~5 us, so only where it matters)
             with _one_blas_thread() if len(H) >= 64 else contextlib.nullcontext():
                 c = scipy.linalg.cho_factor(H, lower=True, check_finite=False)
         except np.linalg.LinAlgError as err:

@@ -598,3 +598,19 @@ def test_chunk_sizes_change_padding_not_results() -> None:
     for bad in ((), (64, 8), (0, 8), (8, 8)):
         with pytest.raises(ConfigError, match="chunk_sizes"):
             IncrementalSolver(IncrementalConfig(chunk_sizes=bad))
+
+
+def test_one_blas_thread_limits_every_blas_and_restores() -> None:
+    import scipy.linalg  # noqa: F401 - its BLAS loaded
+    from threadpoolctl import threadpool_info
+
+    from jaxslam.solvers._blocks import one_blas_thread
+
+    def counts() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    before = counts()
+    with one_blas_thread():
+        inside = counts()
+    assert inside and all(n == 1 for n in inside)
+    assert counts() == before
