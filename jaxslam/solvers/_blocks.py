@@ -182,20 +182,7 @@ class BlockInformation:
         blk = Gb[np.arange(m)[:, None], rows, :, cols, :]  # (m, pairs, bs, bs)
         if sign != 1.0:
             blk = sign * blk
-        flat = slots.ravel()
-        blk = blk.reshape(-1, bs, bs)
-        # np.add.at's sums (each slot's blocks added in their order), but as one fancy-index
-        # add per rank of repetition: the k-th block of every slot in one go (~3x faster)
-        order = np.argsort(flat, kind="stable")
-        fs = flat[order]
-        first = np.ones(len(fs), bool)
-        first[1:] = fs[1:] != fs[:-1]
-        pos = np.arange(len(fs))
-        rank = np.empty(len(fs), np.int64)
-        rank[order] = pos - np.maximum.accumulate(np.where(first, pos, 0))
-        for k in range(int(rank.max()) + 1):
-            sel = rank == k
-            self.data[flat[sel]] += blk[sel]
+        np.add.at(self.data, slots.ravel(), blk.reshape(-1, bs, bs))
 
     def clear(self) -> None:
         """Zero every block (the pattern stays)."""
@@ -245,7 +232,8 @@ class BlockInformation:
     def _lower(self, nb: int) -> sp.csc_matrix:
         """The scalar lower triangle of ``H`` in the current symbolic analysis's order, as
         CSC, read straight from the blocks through the map made with the pattern (the same
-        matrix as assembling it block by block, ~2x cheaper); a zero diagonal entry (a
+        matrix as assembling it block by block: 0.33 ms against 2.2 ms on parking-garage's
+        final system); a zero diagonal entry (a
         variable without factors) becomes 1 so it stays put."""
         _, _, gather, indices, indptr, dpos, _ = self._symbolic
         vals = self.data[: self.n].reshape(-1)[gather]
