@@ -282,9 +282,9 @@ def _linearize_kernel(treedef: Any) -> Any:
     transfer (8 rows of ``BetweenFactor`` on Pose3, loaded machine: 130-160 us per call
     against 165-177 us through a factor pytree and three outputs; the arithmetic is the
     same, results equal to the bit)."""
-    kernel = _KERNELS.get(treedef)
-    if kernel is not None:
-        return kernel
+    cached = _KERNELS.get(treedef)
+    if cached is not None:
+        return cached
 
     @jax.jit
     def kernel(leaves: list[Any], params: tuple[jax.Array, ...], mask: jax.Array) -> jax.Array:
