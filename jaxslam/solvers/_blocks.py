@@ -22,6 +22,7 @@ permanent dof divided by ``bs``); block ``(i, j)`` couples variables ``i >= j``.
 from __future__ import annotations
 
 import contextlib
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -36,7 +37,9 @@ except ImportError:  # pragma: no cover
     HAVE_CHOLMOD = False
 
 
-_BLAS_LIBS: list[Any] | None = None  # threadpoolctl's controllers of the loaded BLAS libraries
+# threadpoolctl's controllers of the loaded BLAS libraries, and len(sys.modules) when they
+# were listed: an import since may have loaded another BLAS (torch, scikit-learn, ...)
+_BLAS_LIBS: tuple[int, list[Any]] | None = None
 
 
 class _OneBlasThread:
@@ -65,16 +68,17 @@ def one_blas_thread() -> Any:
     hundred unknowns) run 10-100x slower when BLAS threads contend with JAX's on a loaded
     2-core CPU (measured on the KITTI IMU+GPS stream: 89 ms vs 0.07 ms per 165x165 Cholesky);
     CHOLMOD's supernodal factorisation of sphere2500 (15k dofs) was as fast or faster on one
-    thread than on two on this shared machine. The libraries are those loaded at the first
-    call (numpy's, scipy's and CHOLMOD's are by then)."""
+    thread than on two on this shared machine. The libraries are listed again whenever a
+    module was imported since the last listing (a BLAS comes with an import; listing costs
+    ~1 ms, the check nothing)."""
     global _BLAS_LIBS
-    if _BLAS_LIBS is None:
+    if _BLAS_LIBS is None or _BLAS_LIBS[0] != len(sys.modules):
         try:
             from threadpoolctl import ThreadpoolController
         except ImportError:  # pragma: no cover - threadpoolctl is a core dependency
             return contextlib.nullcontext()
-        _BLAS_LIBS = list(ThreadpoolController().select(user_api="blas").lib_controllers)
-    return _OneBlasThread(_BLAS_LIBS)
+        _BLAS_LIBS = (len(sys.modules), list(ThreadpoolController().select(user_api="blas").lib_controllers))
+    return _OneBlasThread(_BLAS_LIBS[1])
 
 
 class NotPositiveDefinite(Exception):

@@ -4,6 +4,7 @@ fixed-lag marginalisation (exact on a linear problem), marginal covariances vs G
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -609,7 +610,15 @@ def test_one_blas_thread_limits_every_blas_and_restores() -> None:
     def counts() -> list[int]:
         return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
 
+    import jaxslam.solvers._blocks as blocks
+
     before = counts()
+    with one_blas_thread():
+        inside = counts()
+    assert inside and all(n == 1 for n in inside)
+    assert counts() == before
+    # a BLAS loaded after the libraries were listed (an import since) is limited too
+    blocks._BLAS_LIBS = (len(sys.modules) - 1, [])  # listed before the last import, saw none
     with one_blas_thread():
         inside = counts()
     assert inside and all(n == 1 for n in inside)
