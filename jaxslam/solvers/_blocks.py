@@ -234,11 +234,11 @@ class BlockInformation:
         return solve
 
     def _lower(self, nb: int) -> sp.csc_matrix:
-        """The scalar lower triangle of ``H`` in the current symbolic analysis's order, as
-        CSC, read straight from the blocks through the map made with the pattern (the same
-        matrix as assembling it block by block: 0.33 ms against 2.2 ms on parking-garage's
-        final system); a zero diagonal entry (a
-        variable without factors) becomes 1 so it stays put."""
+        """The scalar lower triangle of ``H`` (diagonal blocks whole) in the current symbolic
+        analysis's order, as CSC, read straight from the blocks through the map made with the
+        pattern: the same matrix as assembling it block by block, 0.33 ms against 2.2 ms on
+        parking-garage's final system. A zero diagonal entry (a variable without factors)
+        becomes 1 so it stays put."""
         if self._symbolic is None:
             raise ValueError("no symbolic analysis yet: factorize() makes one")
         _, _, gather, indices, indptr, dpos, _ = self._symbolic
