@@ -423,9 +423,15 @@ class LoopConfig:
     """Along-track drift expected per metre travelled since the old keyframe: three times it
     (clamped below, plus ``visual_alias_margin``) is the search range, and it is the visual
     loops' consistency gate (as ``drift_per_m`` for LiDAR loops)."""
-    visual_wide_drift_per_m: float = 0.01
-    """When too few patches align within that range, search again with this drift per metre
-    (range and gate alike; 0 or no wider than ``visual_drift_per_m`` = off). On the dark way
+    visual_wide_drift_per_m: float = 0.02
+    """When too few patches align within that range (or, with ``visual_widen_ambiguous``, two
+    hypotheses tie), search again with this drift per metre (range and gate alike, the range
+    clamped at ``visual_wide_max_shift``; 0 or no wider than ``visual_drift_per_m`` = off).
+    0.01 with the range clamped at ``visual_max_shift`` until 2026-12-06: on dark seed 8 the
+    dark way back ran 6-17 % short, the estimate was 1.8-2.0 m off keyframes 40-55 m back,
+    past the 1.3 m searched, only aliases were inside (every search ambiguous or too few),
+    and loop error came out 2.06 m; with 0.02 / 2.5 m / widening ambiguous searches, 0.006 m
+    (see README for all 30 runs). On the dark way
     back of seed 6 the depth-scaled visual odometry ran 10 % short for 15 m while the LiDAR
     was blind along the axis: the estimate was 0.64 m off keyframes 15 m back, past the 0.6 m
     searched, and no visual loop was found for 36 s (APE 0.112 m). Widening every search
@@ -434,6 +440,13 @@ class LoopConfig:
     visual_min_shift: float = 0.3
     visual_max_shift: float = 1.0
     """Bounds of the search range along the direction of travel (m)."""
+    visual_wide_max_shift: float = 2.5
+    """The upper bound for the wide search (``visual_wide_drift_per_m``; no lower than
+    ``visual_max_shift``)."""
+    visual_widen_ambiguous: bool = True
+    """Search wide also where the first search was ambiguous (two hypotheses, aliases of a
+    periodic structure, align about as many patches): when the estimate has drifted past the
+    first range, the true peak lies outside it and only aliases are inside."""
     visual_patch: int = 7
     """Side of the square patch (samples) laid on a point's LiDAR plane and compared by NCC."""
     visual_shift_step: float = 0.02
@@ -614,7 +627,7 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
                 raise ConfigError(f"{where}.{k}: expected a relative sigma >= 0 (0 = off), got {v!r}")
             if k == "wide_inlier_px" and not np.isfinite(v):
                 raise ConfigError(f"{where}.{k}: expected a threshold in pixels (2 or less = off), got {v!r}")
-            if k in ("visual_alias_margin", "visual_confirm_m", "visual_confirm_tol") and not (
+            if k in ("visual_alias_margin", "visual_confirm_m", "visual_confirm_tol", "visual_wide_max_shift") and not (
                 np.isfinite(v) and v >= 0
             ):
                 raise ConfigError(f"{where}.{k}: expected a distance >= 0 (m), got {v!r}")

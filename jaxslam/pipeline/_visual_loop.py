@@ -23,9 +23,11 @@ by the estimate and photometric:
    since the old keyframe, clamped to ``visual_min_shift`` .. ``visual_max_shift``, plus
    ``visual_alias_margin``: a drift just past three times the expected would put the true
    peak at the range's edge, where it cannot show as a peak, and leave a periodic alias
-   inside to win unopposed; where too few patches align, the search and the gate are done
-   once more at ``visual_wide_drift_per_m``: in a dark stretch the visual odometry can run
-   10 % short while the LiDAR is blind along the axis); both
+   inside to win unopposed; where too few patches align, or two hypotheses tie
+   (``visual_widen_ambiguous``), the search and the gate are done once more at
+   ``visual_wide_drift_per_m``, clamped at ``visual_wide_max_shift``: in a dark stretch the
+   visual odometry can run 10 % short while the LiDAR is blind along the axis, and once
+   the estimate is off by more than the first range only aliases lie inside it); both
    images are undistorted (OpenCV ``remap``) and blurred by ``visual_blur_px`` so a few
    centimetres of lateral error do not hide the peak;
 3. hypotheses: up to ``visual_hypotheses`` local peaks of the mean (clipped) NCC over the
@@ -503,13 +505,15 @@ class VisualLoopCloser:
         tried.sort(key=lambda h: -h[0])
         return tried
 
-    def search_range(self, drift_per_m: float, travelled: float) -> float:
+    def search_range(self, drift_per_m: float, travelled: float, wide: bool = False) -> float:
         """How far (m) the search along the track reaches either side of the prediction:
         three times the drift expected over ``travelled`` metres, clamped to
-        [``visual_min_shift``, ``visual_max_shift``], plus ``visual_alias_margin``."""
+        [``visual_min_shift``, ``visual_max_shift``] (``visual_wide_max_shift`` for the wide
+        search), plus ``visual_alias_margin``."""
         cfg = self.cfg
         drift = max(drift_per_m * travelled, 0.02)
-        return min(max(3.0 * drift, cfg.visual_min_shift), cfg.visual_max_shift) + cfg.visual_alias_margin
+        top = max(cfg.visual_wide_max_shift, cfg.visual_max_shift) if wide else cfg.visual_max_shift
+        return min(max(3.0 * drift, cfg.visual_min_shift), top) + cfg.visual_alias_margin
 
     def _verify(
         self,
@@ -527,16 +531,16 @@ class VisualLoopCloser:
         cfg = self.cfg
         narrow, wide = cfg.visual_drift_per_m, cfg.visual_wide_drift_per_m
         n_rej = len(self.rejected)
-        loop, too_few = self._verify_at(i, k, fi, images, T_ki, travelled, poses, narrow)
+        loop, why = self._verify_at(i, k, fi, images, T_ki, travelled, poses, narrow)
         if (
             loop is None
-            and too_few
+            and (why == "too few" or (why == "ambiguous" and cfg.visual_widen_ambiguous))
             and wide > narrow
-            and self.search_range(wide, travelled) > self.search_range(narrow, travelled) + cfg.visual_shift_step
+            and self.search_range(wide, travelled, True) > self.search_range(narrow, travelled) + cfg.visual_shift_step
         ):
             del self.rejected[n_rej:]
             self.wide_searches += 1
-            loop, _ = self._verify_at(i, k, fi, images, T_ki, travelled, poses, wide)
+            loop, _ = self._verify_at(i, k, fi, images, T_ki, travelled, poses, wide, True)
             if loop is None and len(self.rejected) > n_rej:
                 a, b, why = self.rejected[-1]
                 self.rejected[-1] = (a, b, f"wide search: {why}")
@@ -552,11 +556,13 @@ class VisualLoopCloser:
         travelled: float,
         poses: np.ndarray,
         drift_per_m: float,
-    ) -> tuple[VisualLoop | None, bool]:
-        """One search and verification assuming ``drift_per_m``: (the loop or None, whether it
-        was refused because too few patches aligned)."""
+        wide: bool = False,
+    ) -> tuple[VisualLoop | None, str]:
+        """One search and verification assuming ``drift_per_m`` (``wide``: the wide search's
+        clamp): (the loop or None, why it was refused: ``"too few"`` patches aligned,
+        ``"ambiguous"``, another reason, or ``""``)."""
         cfg = self.cfg
-        reach = self.search_range(drift_per_m, travelled)  # competitors are looked for this far
+        reach = self.search_range(drift_per_m, travelled, wide)  # competitors are looked for this far
         shifts, ncc, pts = self.along_track(fi, images, T_ki, reach)
         a = self.T_cb[:3, :3] @ np.array([1.0, 0.0, 0.0])  # travel direction in camera k
         pts = np.sort(pts)
@@ -575,13 +581,13 @@ class VisualLoopCloser:
         if not tried or tried[0][0] < cfg.visual_min_inliers:
             n = tried[0][0] if tried else 0
             self.rejected.append((i, k, f"{n} patches align (of {ncc.shape[1]})"))
-            return None, True
+            return None, "too few"
         best = tried[0]
         if len(tried) > 1 and tried[1][0] > cfg.visual_peak_ratio * best[0]:
             self.rejected.append(
                 (i, k, f"ambiguous: {best[0]} and {tried[1][0]} patches align at {best[1]:+.2f}, {tried[1][1]:+.2f} m")
             )
-            return None, False
+            return None, "ambiguous"
         _, _, T, pts, good, ncc_pts = best
         # the prediction's lateral and vertical come from the LiDAR (the walls, floor, ceiling
         # pin them to a centimetre or two): an alignment that needed to move them far
@@ -591,13 +597,13 @@ class VisualLoopCloser:
         cross = float(np.linalg.norm(d - (d @ a) * a))
         if cross > cfg.visual_max_cross:
             self.rejected.append((i, k, f"moved {cross:.3f} m across the track"))
-            return None, False
+            return None, "other"
         Xc = host.transform_points(T, fi.X[pts[good]])
         x = Xc[:, :2] / Xc[:, 2:3]  # where the aligned patches' centres are
         fit = translation_only(fi.X[pts[good]], x, T, self.f)
         if fit is None:
             self.rejected.append((i, k, "singular"))
-            return None, False
+            return None, "other"
         T, keep, _, H_t = fit
         # information along the track only: the rotation was held at the prediction, and a
         # rotation error of a few tenths of a degree biases the lateral translation by
@@ -609,10 +615,10 @@ class VisualLoopCloser:
                 var *= 1.0 + (blur / cfg.visual_blur_noise_px) ** 2
         except np.linalg.LinAlgError:
             self.rejected.append((i, k, "singular"))
-            return None, False
+            return None, "other"
         if var > cfg.visual_max_sigma**2:  # too few or badly placed patches to be worth the risk
             self.rejected.append((i, k, f"along-track sigma {np.sqrt(var):.3f} m"))
-            return None, False
+            return None, "other"
         info = np.diag(
             [1.0 / np.radians(cfg.visual_rotation_sigma_deg) ** 2] * 3 + [1.0 / cfg.visual_loose_sigma**2] * 3
         )
@@ -625,10 +631,10 @@ class VisualLoopCloser:
         ok, m2 = drift_gate(T_ik, info, T_est, travelled, dataclasses.replace(cfg, drift_per_m=drift_per_m))
         if not ok:
             self.rejected.append((i, k, f"inconsistent with odometry (chi2 {m2:.1f})"))
-            return None, False
+            return None, "other"
         return VisualLoop(
             i, k, T_ik, info, len(keep), ncc.shape[1], float(np.mean(ncc_pts[good])), m2, blur, drift_per_m
-        ), False
+        ), ""
 
 
 def translation_only(

@@ -160,47 +160,59 @@ def test_a_drift_past_the_range_is_measured_or_refused_never_faked(scene, error)
 def test_a_wide_search_follows_too_few_aligned_patches_only(scene, monkeypatch):
     """The second search, at ``visual_wide_drift_per_m``, runs only where the first found too
     few aligned patches (on dark seed 6's way back the estimate was 0.64 m off keyframes 15 m
-    back, past the 0.6 m searched) and only where it reaches further; the first search's
-    refusal is then not counted as a refused loop. Other refusals (ambiguous, inconsistent,
-    across the track) are final."""
+    back, past the 0.6 m searched), or was ambiguous with ``visual_widen_ambiguous``, and only
+    where it reaches further (its own clamp, ``visual_wide_max_shift``); the first search's
+    refusal is then not counted as a refused loop. Other refusals (inconsistent, across the
+    track) are final."""
     rig = scene[0]
+    # the semantics, not the defaults: a 1 % wide drift clamped like the first search
+    base = {"visual_wide_drift_per_m": 0.01, "visual_wide_max_shift": 1.0, "visual_widen_ambiguous": False}
     cfg = LoopConfig()
     calls: list[float] = []
 
     def stub(result, why):
-        def verify_at(self, i, k, fi, images, T_ki, travelled, poses, drift_per_m):
+        def verify_at(self, i, k, fi, images, T_ki, travelled, poses, drift_per_m, wide=False):
             calls.append(drift_per_m)
-            if drift_per_m == cfg.visual_wide_drift_per_m and result is not None:
-                return result, False
+            assert wide == (drift_per_m == cfg.visual_wide_drift_per_m)
+            if wide and result is not None:
+                return result, ""
             self.rejected.append((i, k, why))
-            return None, why[0].isdigit()  # "N patches align": too few
+            # "N patches align": too few
+            return None, "too few" if why[0].isdigit() else "ambiguous" if why.startswith("ambiguous") else "other"
 
         return verify_at
 
     found = object()
-    for why, travelled, expect_calls, expect in [
-        ("3 patches align", 15.0, [0.005, 0.01], found),  # too few: searched again, found
-        ("ambiguous: 30 and 28 patches align", 15.0, [0.005], None),
-        ("inconsistent with odometry (chi2 40.0)", 15.0, [0.005], None),
-        ("3 patches align", 300.0, [0.005], None),  # both ranges at visual_max_shift
-        ("3 patches align", 2.0, [0.005], None),  # both at visual_min_shift
+    for why, travelled, expect_calls, expect, changes in [
+        ("3 patches align", 15.0, [0.005, 0.01], found, {}),  # too few: searched again, found
+        ("ambiguous: 30 and 28 patches align", 15.0, [0.005], None, {}),
+        ("ambiguous: 30 and 28 patches align", 15.0, [0.005, 0.01], found, {"visual_widen_ambiguous": True}),
+        ("inconsistent with odometry (chi2 40.0)", 15.0, [0.005], None, {"visual_widen_ambiguous": True}),
+        ("3 patches align", 300.0, [0.005], None, {}),  # both ranges at visual_max_shift
+        ("3 patches align", 300.0, [0.005, 0.01], found, {"visual_wide_max_shift": 2.0}),
+        ("3 patches align", 2.0, [0.005], None, {}),  # both at visual_min_shift
     ]:
         calls.clear()
         monkeypatch.setattr(VisualLoopCloser, "_verify_at", stub(found, why))
-        closer = _closer(rig)
+        cfg = dataclasses.replace(LoopConfig(), **{**base, **changes})
+        closer = _closer(rig, **{**base, **changes})
         assert closer._verify(0, 1, None, (None, None), np.eye(4), travelled, None) is expect, why
         assert calls == expect_calls, why
         assert closer.wide_searches == (len(expect_calls) - 1)
         assert closer.rejected == ([] if expect is found else [(0, 1, why)])
     monkeypatch.setattr(VisualLoopCloser, "_verify_at", stub(None, "3 patches align"))
-    closer = _closer(rig)
+    closer = _closer(rig, **base)
     assert closer._verify(0, 1, None, (None, None), np.eye(4), 15.0, None) is None
     assert closer.rejected == [(0, 1, "wide search: 3 patches align")]  # one refusal, the last
-    closer = _closer(rig, visual_wide_drift_per_m=0.0)
+    closer = _closer(rig, **{**base, "visual_wide_drift_per_m": 0.0})
     calls.clear()
     assert closer._verify(0, 1, None, (None, None), np.eye(4), 15.0, None) is None and calls == [0.005]
     assert closer.search_range(0.005, 15.0) == pytest.approx(0.6)
     assert closer.search_range(0.01, 15.0) == pytest.approx(0.75)
+    wide = _closer(rig, visual_wide_max_shift=2.5)  # the wide clamp is the wide search's only
+    assert wide.search_range(0.02, 100.0) == pytest.approx(1.3)
+    assert wide.search_range(0.02, 100.0, wide=True) == pytest.approx(2.8)
+    assert wide.search_range(0.02, 30.0, wide=True) == pytest.approx(2.1)
 
 
 def test_a_dark_wide_search_never_takes_an_alias(frames):

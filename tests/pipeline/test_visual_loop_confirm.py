@@ -93,6 +93,7 @@ def test_off_accepts_at_once():
         "visual_confirm_drift_per_m",
         "visual_wide_drift_per_m",
         "visual_drift_per_m",
+        "visual_wide_max_shift",
     ],
 )
 def test_bad_values_are_config_errors(tmp_path, key):
