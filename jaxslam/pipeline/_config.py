@@ -446,7 +446,8 @@ class LoopConfig:
     visual_widen_ambiguous: bool = True
     """Search wide also where the first search was ambiguous (two hypotheses, aliases of a
     periodic structure, align about as many patches): when the estimate has drifted past the
-    first range, the true peak lies outside it and only aliases are inside."""
+    first range, the true peak lies outside it and only aliases are inside. The first
+    search's hypotheses are aligned again in the wide one, so a tie found there stands."""
     visual_patch: int = 7
     """Side of the square patch (samples) laid on a point's LiDAR plane and compared by NCC."""
     visual_shift_step: float = 0.02

@@ -27,7 +27,8 @@ by the estimate and photometric:
    (``visual_widen_ambiguous``), the search and the gate are done once more at
    ``visual_wide_drift_per_m``, clamped at ``visual_wide_max_shift``: in a dark stretch the
    visual odometry can run 10 % short while the LiDAR is blind along the axis, and once
-   the estimate is off by more than the first range only aliases lie inside it); both
+   the estimate is off by more than the first range only aliases lie inside it; the first
+   search's hypotheses compete in the wide one too); both
    images are undistorted (OpenCV ``remap``) and blurred by ``visual_blur_px`` so a few
    centimetres of lateral error do not hide the peak;
 3. hypotheses: up to ``visual_hypotheses`` local peaks of the mean (clipped) NCC over the
@@ -540,7 +541,13 @@ class VisualLoopCloser:
         ):
             del self.rejected[n_rej:]
             self.wide_searches += 1
-            loop, _ = self._verify_at(i, k, fi, images, T_ki, travelled, poses, wide, True)
+            # the first search's hypotheses compete in the wide one too: a wider range has
+            # more peaks than ``visual_hypotheses``, and an alias that tied inside the first
+            # range must not drop out of the comparison (measured: a prediction 1.5 m off
+            # gave a tie of two rung aliases at -0.3 / +0.3 m; searched wide without them the
+            # -0.3 m alias won alone, a false loop 1.2 m off)
+            first = tuple(moved for _, moved in self.last_hypotheses)
+            loop, _ = self._verify_at(i, k, fi, images, T_ki, travelled, poses, wide, True, first)
             if loop is None and len(self.rejected) > n_rej:
                 a, b, why = self.rejected[-1]
                 self.rejected[-1] = (a, b, f"wide search: {why}")
@@ -557,16 +564,21 @@ class VisualLoopCloser:
         poses: np.ndarray,
         drift_per_m: float,
         wide: bool = False,
+        extra: tuple[float, ...] = (),
     ) -> tuple[VisualLoop | None, str]:
         """One search and verification assuming ``drift_per_m`` (``wide``: the wide search's
-        clamp): (the loop or None, why it was refused: ``"too few"`` patches aligned,
-        ``"ambiguous"``, another reason, or ``""``)."""
+        clamp), with the shifts ``extra`` aligned as hypotheses too: (the loop or None, why
+        it was refused: ``"too few"`` patches aligned, ``"ambiguous"``, another reason, or
+        ``""``)."""
         cfg = self.cfg
         reach = self.search_range(drift_per_m, travelled, wide)  # competitors are looked for this far
         shifts, ncc, pts = self.along_track(fi, images, T_ki, reach)
         a = self.T_cb[:3, :3] @ np.array([1.0, 0.0, 0.0])  # travel direction in camera k
         pts = np.sort(pts)
         hyps = self.hypotheses(shifts, ncc)
+        for sh in extra:
+            if hyps and all(abs(sh - o) > 3 * cfg.visual_shift_tol for o in hyps):
+                hyps.append(float(sh))
         tried = self._align_hypotheses(fi, pts, images, T_ki, hyps, reach, 0.0)
         blur = 0.0
         for rung in range(1, cfg.visual_dim_blur_rungs + 1):

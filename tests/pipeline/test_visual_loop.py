@@ -157,6 +157,27 @@ def test_a_drift_past_the_range_is_measured_or_refused_never_faked(scene, error)
         assert abs(e[3]) < 0.02
 
 
+def test_a_wide_search_keeps_the_first_searchs_competitors(scene):
+    """The prediction 1.5 m off over 20 m: the first search (0.6 m) finds two rung aliases
+    that tie (-0.3 / +0.3 m) and is ambiguous; the wide one (1.5 m) has more peaks than
+    ``visual_hypotheses`` and, left to its own, drops the +0.3 m alias and hands the loop to
+    the other (1.2 m off). With the first search's hypotheses aligned too, the tie stands
+    and nothing is accepted."""
+    rig, (f_old, img_old, T_old), (_, img_cur, T_cur), _ = scene
+    wrong = T_cur @ host.make_pose(np.eye(3), np.array([1.5, 0.0, 0.0]))
+    q = _query(T_old, wrong, travelled=20.0)
+    closer = _closer(rig, visual_drift_per_m=0.005, visual_wide_drift_per_m=0.02, visual_widen_ambiguous=True)
+    assert closer.detect(q, img_cur, {0: f_old}, {0: img_old}) == [], closer.accepted
+    assert closer.wide_searches == 1 and closer.rejected[-1][2].startswith("wide search: ambiguous")
+    # the trap is real: the wide search alone takes the alias
+    alone = _closer(rig, visual_drift_per_m=0.005, visual_wide_drift_per_m=0.02)
+    alone._rectified = {}
+    T_ki = host.inverse(q.poses[1] @ alone.T_bc) @ q.poses[0] @ alone.T_bc  # camera k <- camera i
+    loop, _ = alone._verify_at(0, 1, f_old, (img_old, img_cur), T_ki, 20.0, q.poses, 0.02, True)
+    assert loop is not None
+    assert abs(host.se3_log(host.inverse(loop.T) @ (host.inverse(T_old) @ T_cur))[3]) > 1.0
+
+
 def test_a_wide_search_follows_too_few_aligned_patches_only(scene, monkeypatch):
     """The second search, at ``visual_wide_drift_per_m``, runs only where the first found too
     few aligned patches (on dark seed 6's way back the estimate was 0.64 m off keyframes 15 m
@@ -171,7 +192,7 @@ def test_a_wide_search_follows_too_few_aligned_patches_only(scene, monkeypatch):
     calls: list[float] = []
 
     def stub(result, why):
-        def verify_at(self, i, k, fi, images, T_ki, travelled, poses, drift_per_m, wide=False):
+        def verify_at(self, i, k, fi, images, T_ki, travelled, poses, drift_per_m, wide=False, extra=()):
             calls.append(drift_per_m)
             assert wide == (drift_per_m == cfg.visual_wide_drift_per_m)
             if wide and result is not None:
