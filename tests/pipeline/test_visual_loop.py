@@ -188,7 +188,6 @@ def test_a_wide_search_follows_too_few_aligned_patches_only(scene, monkeypatch):
     rig = scene[0]
     # the semantics, not the defaults: a 1 % wide drift clamped like the first search
     base = {"visual_wide_drift_per_m": 0.01, "visual_wide_max_shift": 1.0, "visual_widen_ambiguous": False}
-    cfg = LoopConfig()
     calls: list[float] = []
 
     def stub(result, why):
