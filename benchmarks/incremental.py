@@ -290,6 +290,12 @@ def main() -> None:
     ap.add_argument("--loop-chi2", type=float, default=IncrementalConfig.loop_chi2)
     ap.add_argument("--relinearize-threshold", type=float, default=IncrementalConfig.relinearize_threshold)
     ap.add_argument("--full-solve-tol", type=float, default=IncrementalConfig.full_solve_tol)
+    ap.add_argument(
+        "--relinearize-skip",
+        type=int,
+        default=IncrementalConfig.relinearize_skip,
+        help="check for variables to relinearise every this many updates (iSAM2's relinearizeSkip)",
+    )
     ap.add_argument("--checkpoints", type=int, default=10)
     ap.add_argument("--guess", choices=["file", "chain"], default="chain", help="initial value of each new vertex")
     ap.add_argument(
@@ -310,6 +316,7 @@ def main() -> None:
         loop_chi2=a.loop_chi2,
         relinearize_threshold=a.relinearize_threshold,
         full_solve_tol=a.full_solve_tol,
+        relinearize_skip=a.relinearize_skip,
     )
     results = [bench_file(f, cfg, a.checkpoints) for f in a.files]
     for r in results:

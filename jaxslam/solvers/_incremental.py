@@ -84,6 +84,9 @@ class IncrementalConfig:
     """Relinearise a variable when its tangent offset from the linearisation point exceeds
     this (infinity norm; iSAM2's default is 0.1, 0.05 ended closer to the optimum on
     parking-garage at no measurable cost)."""
+    relinearize_skip: int = 1
+    """Check for variables to relinearise only every this many updates (iSAM2's
+    ``relinearizeSkip``, 10 by default there); 1 = at every update."""
     window: int = 10
     """Every update re-solves the variables of the last ``window`` updates (and all the
     update touched) with the rest held."""
@@ -418,6 +421,10 @@ class IncrementalSolver:
         if self.config.linear_solver == "cholmod" and not _HAVE_CHOLMOD:
             raise ValueError("linear solver 'cholmod' needs scikit-sparse (pip install 'jaxslam[cholmod]')")
         self._method = "cholmod" if self.config.linear_solver in ("auto", "cholmod") and _HAVE_CHOLMOD else "splu"
+        if self.config.relinearize_skip < 1:
+            raise ConfigError(
+                f"relinearize_skip must be >= 1 (1: check at every update), got {self.config.relinearize_skip}"
+            )
         cs = tuple(self.config.chunk_sizes)
         if not cs or any(c < 1 for c in cs) or list(cs) != sorted(set(cs)):
             raise ConfigError(f"chunk_sizes must be distinct positive row counts in ascending order, got {cs}")
@@ -597,9 +604,10 @@ class IncrementalSolver:
         # fluid relinearisation
         nrelin = 0
         moved_rows = []
+        check = self.updates % cfg.relinearize_skip == 0
         for s in self._store_list:
             moved = np.zeros(0, np.int64)
-            if s.n:
+            if s.n and check:
                 moved = np.nonzero(
                     s.live[: s.n] & (np.max(np.abs(s.delta[: s.n]), axis=1) > cfg.relinearize_threshold)
                 )[0]

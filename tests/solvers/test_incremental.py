@@ -30,11 +30,11 @@ def _slice(f, idx):
     return jax.tree_util.tree_map(lambda leaf: leaf[idx] if np.ndim(leaf) >= 1 else leaf, f)
 
 
-def _replay(graph, config: IncrementalConfig | None = None, upto: int | None = None):
-    """Feed a pose graph vertex by vertex (file values as initial guesses); returns the
-    solver and the factor list it received."""
+def _replay(graph, config: IncrementalConfig | None = None, upto: int | None = None, solver=None):
+    """Feed a pose graph vertex by vertex (file values as initial guesses) to ``solver`` (a
+    new one with ``config`` by default); returns the solver and the factor list it received."""
     vt = graph.var_type
-    solver = IncrementalSolver(config)
+    solver = solver or IncrementalSolver(config)
     between = graph.factors[0]
     params = np.asarray(graph.values.params(vt))
     ids = graph.vertex_ids
@@ -623,3 +623,31 @@ def test_one_blas_thread_limits_every_blas_and_restores() -> None:
         inside = counts()
     assert inside and all(n == 1 for n in inside)
     assert counts() == before
+
+
+def test_relinearize_skip_checks_only_every_kth_update() -> None:
+    """iSAM2's ``relinearizeSkip``: variables are relinearised only at every k-th update
+    (at others the linearisation stays, however far a variable moved), and ``optimize()``
+    still reaches the batch optimum; a skip below 1 is refused."""
+    graph = read_g2o(str(DATA / "smallGrid3D.g2o"))
+    counts = {}
+    for skip in (1, 4):
+        solver = IncrementalSolver(IncrementalConfig(relinearize_skip=skip, relinearize_threshold=0.01))
+        seen = []
+        orig = solver.update
+
+        def update(*a, _orig=orig, _seen=seen, _s=solver, **kw):
+            k = _s.updates
+            res = _orig(*a, **kw)
+            _seen.append((k, res.relinearized))
+            return res
+
+        solver.update = update  # type: ignore[method-assign]
+        _replay(graph, solver=solver)
+        counts[skip] = seen
+    off_beat = [r for k, r in counts[1] if k % 4]
+    assert sum(off_beat) > 0, "the stream never relinearises between every 4th update: the test would be empty"
+    assert all(r == 0 for k, r in counts[4] if k % 4), "relinearised at an update the skip leaves out"
+    assert sum(r for _, r in counts[4]) > 0
+    with pytest.raises(ConfigError, match="relinearize_skip"):
+        IncrementalSolver(IncrementalConfig(relinearize_skip=0))
