@@ -684,8 +684,10 @@ class Estimator:
                     info = with_length_sigma(info, vm.T[:3, 3], ratio)
                     self.length_softened += 1
                 vcfg = self.cfg.vision
+                n_min = vcfg.unscaled_min_inliers
+                scaled = self._scaled_vision and not (n_min > 0 and vm.refined and vm.inliers >= n_min)
                 factor = visual_odometry_factor(
-                    vm.i, vm.j, vm.T, info, self._scaled_vision, vcfg.odometry_kernel, vcfg.odometry_kernel_scale
+                    vm.i, vm.j, vm.T, info, scaled, vcfg.odometry_kernel, vcfg.odometry_kernel_scale
                 )
                 out.append(self._tag("vision", factor))
                 self.edges.append(("visual odometry", vm.i, vm.j, vm.T, info))

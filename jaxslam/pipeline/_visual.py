@@ -99,6 +99,8 @@ class VisualMeasurement:
     """Inlier 3-D points in camera i (M, 3) and their normalised observations in j (M, 2)."""
     xn_j: np.ndarray
     rmse_px: float
+    refined: bool = False
+    """Its keypoints in ``j`` were replaced by aligned patches (``vision.patch_refine``)."""
 
 
 @dataclasses.dataclass
@@ -290,6 +292,7 @@ class VisualFrontend:
         T_cbca, keep, e = fit
         X, x, ia, ib = a.X[ia][keep], b.xn[ib][keep], ia[keep], ib[keep]
         Xb = b.X[ib]
+        refined = None
         if cfg.patch_refine:
             refined = self._refine_by_patches(a, b, ia, ib, T_cbca)
             if refined is not None:
@@ -321,6 +324,7 @@ class VisualFrontend:
             X,
             x,
             float(np.sqrt(np.mean((e * self.f) ** 2))),
+            refined is not None,
         )
 
     def _refine_by_patches(

@@ -256,6 +256,8 @@ def test_wrong_types_raise(data):
         {"vision": {"patch_half": 0}},
         {"vision": {"patch_half": 6.5}},
         {"vision": {"patch_retry_half": -1}},
+        {"vision": {"unscaled_min_inliers": -1}},
+        {"vision": {"unscaled_min_inliers": 2.5}},
         {"vision": {"patch_retry_min_ncc": -2.0}},
         {"vision": {"patch_retry_min_fraction": 1.1}},
         {"lidar": {"anchor_gap_scans": -1}},

@@ -224,6 +224,35 @@ def test_scale_reverts_to_a_run_wide_scale_the_graph_estimates(records, config, 
     assert ape < baseline[2] + 0.02, (ape, baseline[2])
 
 
+def test_well_aligned_visual_factors_leave_the_scale_out(records, config, baseline) -> None:
+    """``vision.unscaled_min_inliers`` (50 by default; 0 = every visual factor scaled): a
+    patch-refined visual factor with at least that many inliers is a plain between factor,
+    every other one a ScaledBetweenFactor on its keyframe's scale; the run stays accurate."""
+
+    def kinds(est):
+        facs = [f for kind, f in est.graph if kind == "vision"]
+        assert len(facs) == len(est.visual_edges)
+        return [type(f).__name__ for f in facs]
+
+    def expected(est, n_min):
+        return [
+            "BetweenFactor" if n_min > 0 and vm.refined and vm.inliers >= n_min else "ScaledBetweenFactor"
+            for vm in est.visual_edges
+        ]
+
+    est0 = baseline[0]
+    assert config.vision.unscaled_min_inliers == 50
+    assert kinds(est0) == expected(est0, 50)
+    refined = sorted(vm.inliers for vm in est0.visual_edges if vm.refined)
+    assert len(refined) >= 4 and refined[0] < refined[-1], refined  # both sides of the bar below
+    for n_min in (refined[len(refined) // 2], 0):
+        est, _, ape = _run(records, config.replace(vision={"unscaled_min_inliers": n_min}))
+        got = kinds(est)
+        assert got == expected(est, n_min)
+        assert ("BetweenFactor" in got) == (n_min > 0) and "ScaledBetweenFactor" in got
+        assert ape < baseline[2] + 0.02, (ape, baseline[2])
+
+
 def test_axis_sigma_scale_reaches_every_factor_kind(records, config, baseline) -> None:
     """``{lidar,vision,loop}.axis_sigma_scale`` and ``loop.visual_axis_sigma_scale``: in a
     run, every LiDAR odometry factor's, visual odometry factor's and loop factor's information
