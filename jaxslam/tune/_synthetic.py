@@ -55,5 +55,5 @@ def tunnel_capture(
     truth = np.asarray(T.act(jnp.asarray(truth)))
     values = Values.create({Pose3Var(np.arange(n)): gt})
     return Captured(
-        f"seed{seed}", {"lidar": lidar, "loop": loop}, [prior], values, np.arange(n), truth, np.asarray(lever), "x"
+        f"seed{seed}", {"lidar": [lidar], "loop": [loop]}, [prior], values, np.arange(n), truth, np.asarray(lever), "x"
     )

@@ -112,7 +112,9 @@ class Captured:
     """One training recording's final factor graph and truth at its keyframes."""
 
     name: str
-    kinds: dict[str, Factor]
+    kinds: dict[str, list[Factor]]
+    """Per weighted kind, its factors concatenated by class (a kind may hold two: visual
+    odometry is a ``ScaledBetweenFactor`` or, outside the scale, a ``BetweenFactor``)."""
     fixed: list[Factor]
     values: Values
     keyframes: np.ndarray  # (M,) indices of keyframes with truth
@@ -145,7 +147,12 @@ def capture(est: Any, res: dict[str, Any], gt: Any, cfg: TuneConfig, name: str) 
     fixed: list[Factor] = []
     for kind, f in est.graph:
         (by_kind.setdefault(kind, []) if kind in _KIND_GROUPS else fixed).append(f)
-    kinds = {k: concatenate_factors(v) for k, v in by_kind.items() if v}
+    kinds = {}
+    for k, v in by_kind.items():
+        by_class: dict[type, list[Factor]] = {}
+        for f in v:
+            by_class.setdefault(type(f), []).append(f)
+        kinds[k] = [concatenate_factors(fs) for fs in by_class.values()]
     times = np.asarray(res["times"])
     mode = cfg.truth
     if mode == "auto":
@@ -177,14 +184,15 @@ def factor_fn_for(run: Captured) -> Callable[[Array_], list[Factor]]:
 
     def build(theta: Array_) -> list[Factor]:
         out = list(run.fixed)
-        for kind, f in run.kinds.items():
+        for kind, fs in run.kinds.items():
             groups = _KIND_GROUPS[kind]
-            if len(groups) == 1:
-                s = jnp.full(f.noise.dim, jnp.exp(-theta[index[groups[0]]]))
-            else:
-                rot, trans = (jnp.exp(-theta[index[g]]) for g in groups)
-                s = jnp.concatenate([jnp.full(3, rot), jnp.full(3, trans)])
-            out.append(f.with_noise(Gaussian(f.noise.sqrt_info * s[None, None, :])))
+            for f in fs:
+                if len(groups) == 1:
+                    s = jnp.full(f.noise.dim, jnp.exp(-theta[index[groups[0]]]))
+                else:
+                    rot, trans = (jnp.exp(-theta[index[g]]) for g in groups)
+                    s = jnp.concatenate([jnp.full(3, rot), jnp.full(3, trans)])
+                out.append(f.with_noise(Gaussian(f.noise.sqrt_info * s[None, None, :])))
         return out
 
     return build

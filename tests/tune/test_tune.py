@@ -146,7 +146,7 @@ def test_captures_positions_with_a_lever_arm() -> None:
     run = _captured(0, 1.0)
     fixes = [PositionFix(float(t), np.array([t, 0.0, 1.0])) for t in np.arange(0.0, 10.0, 0.2)]
     est = types.SimpleNamespace(
-        graph=[("prior", run.fixed[0]), ("lidar", run.kinds["lidar"]), ("loop", run.kinds["loop"])],
+        graph=[("prior", run.fixed[0]), ("lidar", run.kinds["lidar"][0]), ("loop", run.kinds["loop"][0])],
         fixes=fixes,
         solver=types.SimpleNamespace(estimate=lambda: run.values),
     )
@@ -158,6 +158,43 @@ def test_captures_positions_with_a_lever_arm() -> None:
     np.testing.assert_allclose(cap.truth[:, 0], res["times"][cap.keyframes])
     with pytest.raises(Exception, match="no ground-truth poses"):
         capture(est, res, None, TuneConfig(truth="poses"), "x")
+
+
+def test_a_kind_of_two_factor_classes_is_captured_and_weighted_per_class() -> None:
+    """Visual odometry is a ScaledBetweenFactor, or a BetweenFactor where it stays out of the
+    scale (``vision.unscaled_min_inliers``): the capture keeps one concatenated factor per
+    class of a kind, and the weighting multiplies each by the kind's sigmas."""
+    from jaxslam.core import Gaussian, Pose3Var, ScaleVar
+    from jaxslam.factors import BetweenFactor, ScaledBetweenFactor
+    from jaxslam.lie import host
+    from jaxslam.measurements import PositionFix
+    from jaxslam.tune._tune import capture
+
+    run = _captured(0, 1.0)
+    T = host.matrix_to_params(np.eye(4))[None]
+    noise = Gaussian.diagonal(jnp.full(6, 0.01))
+    plain = [BetweenFactor.create(Pose3Var(np.array([k])), Pose3Var(np.array([k + 1])), T, noise) for k in (0, 2)]
+    scaled = [
+        ScaledBetweenFactor.create(
+            Pose3Var(np.array([k])), Pose3Var(np.array([k + 1])), ScaleVar(np.array([k + 1])), T, noise
+        )
+        for k in (1, 3)
+    ]
+    graph = [("prior", run.fixed[0]), ("vision", plain[0]), ("vision", scaled[0]), ("vision", plain[1])]
+    graph.append(("vision", scaled[1]))
+    fixes = [PositionFix(float(t), np.array([t, 0.0, 1.0])) for t in np.arange(0.0, 10.0, 0.2)]
+    est = types.SimpleNamespace(graph=graph, fixes=fixes, solver=types.SimpleNamespace(estimate=lambda: run.values))
+    cap = capture(est, {"times": np.arange(len(run.truth)) * 0.5}, None, TuneConfig(truth="auto"), "x")
+    assert sorted(type(f).__name__ for f in cap.kinds["vision"]) == ["BetweenFactor", "ScaledBetweenFactor"]
+    assert all(f.num_constraints == 2 for f in cap.kinds["vision"])
+    theta = np.zeros(len(GROUPS))
+    theta[GROUPS.index("vision.translation")] = np.log(2.0)
+    out = [f for f in factor_fn_for(cap)(jnp.asarray(theta)) if type(f) in (BetweenFactor, ScaledBetweenFactor)]
+    assert len(out) == 2
+    for f in out:
+        d = np.abs(np.asarray(f.noise.sqrt_info)[:, np.arange(6), np.arange(6)])
+        np.testing.assert_allclose(d[:, :3], 100.0)
+        np.testing.assert_allclose(d[:, 3:], 50.0)  # sigma 0.01 x 2
 
 
 def test_cli_refuses_bad_input(tmp_path, capsys) -> None:
