@@ -125,6 +125,7 @@ def main() -> None:
                             "visual_loops_blurred",
                             "visual_loops_wide",
                             "visual_loop_wide_searches",
+                            "visual_loop_ladder_climbs",
                             "loops_rejected",
                             "loops_false",
                             "keyframes",

@@ -307,6 +307,7 @@ def run_recording(
             else 0
         ),
         "visual_loop_wide_searches": est.visual_loops.wide_searches if est.visual_loops else 0,
+        "visual_loop_ladder_climbs": est.visual_loops.ladder_climbs if est.visual_loops else 0,
         "visual_scale": est._vo_scale,
         "zero_velocity_updates": est.zupt_count,
         "visual_lengths_softened": est.length_softened,

@@ -38,7 +38,8 @@ by the estimate and photometric:
    aligns ``visual_min_inliers`` patches on the sharp images (a dark stretch, where the
    sensor noise caps a true patch's NCC), all are aligned again on images blurred by
    ``visual_dim_blur_px`` (and, with ``visual_dim_blur_rungs`` above 1, by twice, three
-   times that, each rung only where the one before still aligned too few);
+   times that, each rung only where the one before still aligned too few, and only where
+   both images' mean grey level is below ``visual_dim_ladder_max_grey``);
 4. acceptance: at least ``visual_min_inliers`` such patches, no runner-up hypothesis with
    more than ``visual_peak_ratio`` of the winner's (a periodic structure: tray rungs,
    brackets),
@@ -135,6 +136,8 @@ class VisualLoopCloser:
         self.rejected: list[tuple[int, int, str]] = []
         self.attempts = 0
         self.wide_searches = 0
+        self.ladder_climbs = 0
+        """Alignments on a blur rung above the first (``visual_dim_blur_rungs``)."""
         """Candidates searched again at ``visual_wide_drift_per_m``."""
         self.last_hypotheses: list[tuple[int, float]] = []
         """The last verification's aligned hypotheses: (patches aligned, shift in m), best first."""
@@ -581,9 +584,13 @@ class VisualLoopCloser:
                 hyps.append(float(sh))
         tried = self._align_hypotheses(fi, pts, images, T_ki, hyps, reach, 0.0)
         blur = 0.0
-        for rung in range(1, cfg.visual_dim_blur_rungs + 1):
+        rungs = cfg.visual_dim_blur_rungs
+        if rungs > 1 and max(float(np.mean(im)) for im in images) >= cfg.visual_dim_ladder_max_grey:
+            rungs = 1  # not dark enough for the ladder: its blur lets aliases align too
+        for rung in range(1, rungs + 1):
             if (tried and tried[0][0] >= cfg.visual_min_inliers) or cfg.visual_dim_blur_px <= 0 or not hyps:
                 break
+            self.ladder_climbs += rung > 1
             # too few patches align on the sharp images: in a dark stretch the sensor noise
             # (a few grey levels at full gain) caps a true patch's NCC well below the
             # threshold, so the alignment is tried again on blurred images, more each rung

@@ -242,6 +242,8 @@ def test_wrong_types_raise(data):
         {"loop": {"visual_blur_noise_px": float("inf")}},
         {"loop": {"visual_dim_blur_rungs": -1}},
         {"loop": {"visual_dim_blur_rungs": 1.5}},
+        {"loop": {"visual_dim_ladder_max_grey": -1.0}},
+        {"loop": {"visual_dim_ladder_max_grey": float("nan")}},
         {"imu": {"zupt_hold_sigma": -0.001}},
         {"imu": {"zupt_hold_sigma": float("nan")}},
         {"vision": {"guided_information_scale": 0.0}},
