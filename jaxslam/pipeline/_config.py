@@ -478,28 +478,28 @@ class LoopConfig:
     them again on images blurred by this much (Gaussian, px; 0 = off). In a dark stretch
     (mean grey level ~4 at full gain) the sensor noise caps a true patch's NCC on sharp
     images well below ``visual_min_ncc``; a 1 px blur lifts it (see README)."""
-    visual_dim_blur_rungs: int = 2
+    visual_dim_blur_rungs: int = 1
     """How many blurs the dim retry climbs: rung r aligns on images blurred by r x
     ``visual_dim_blur_px``, tried only when the rung before aligned too few patches (and,
-    above the first, only in the dark: ``visual_dim_ladder_max_grey``). 2 since session 35
-    (was 1): on the darkest return legs (mean grey 5.5-10) the 1 px retry aligned 17-19
-    patches where 20 are needed, no visual loop formed over 10-15 m and the short visual
-    odometry there set the APE (dark seeds 8 / 12: 0.041 / 0.076 m -> 0.024 / 0.030 m with the
-    ladder; see README)."""
+    above the first, only in the dark: ``visual_dim_ladder_max_grey``). Measured in session
+    35 with 2, the gate at 12 and ``visual_blur_noise_px: 1`` on all 30 benchmark runs: dark
+    seeds 8 / 12 APE 0.041 / 0.076 -> 0.024 / 0.030 m, but uneven 13's loop error 0.020 ->
+    0.040 m (no 2 px alignment there: the inflation of its 1 px loops moved it), both goals
+    on 28 of 30 either way; kept at 1 (see README)."""
     visual_dim_ladder_max_grey: float = 12.0
     """Rungs above the first (``visual_dim_blur_rungs`` > 1) are climbed only where both
     images' mean raw grey level is below this (255 = everywhere): the blur that lifts a true
     patch's NCC out of the sensor noise of a very dark stretch also lets aliases align in
-    brighter ones, where the sharp and 1 px alignments already find what there is. Session
-    22's ungated ladder met both goals on all 13 dark seeds of then but raised the loop error
-    of uneven seeds 6 / 9 past the goal; no frame of uneven seeds 0-14 but 3 and 8 is darker
-    than 12 (the dark seeds' return legs: 5.5-26)."""
-    visual_blur_noise_px: float = 1.0
+    brighter ones, where the sharp and 1 px alignments already find what there is (session
+    22's ungated ladder raised uneven seeds 6 / 9's loop error past the goal). Of the
+    uneven-light benchmark recordings (seeds 0-14) only 3 and 8 have frames darker than 12;
+    the dark seeds' return legs are 5.5-26."""
+    visual_blur_noise_px: float = 0.0
     """A visual loop aligned on images blurred by b px gets its along-track variance
     multiplied by 1 + (b / this)^2 (0 = no inflation): a blurred patch's NCC peak is wider,
     so its centre is found less precisely than the sharp-image reprojection Hessian says
     (session 23: loops aligned at 2 px had along-track z RMS 1.9-2.2 against ground truth,
-    sharp and 1 px ones 0.5-1.6). 1 since session 35 (was 0), with the ladder."""
+    sharp and 1 px ones 0.5-1.6)."""
     visual_search_spacing_px: float = 3.0
     """The search along the track compares blurred images (Gaussian, px) with patches spaced
     this far apart (px in the old image): coarse, so that the prediction's error across the

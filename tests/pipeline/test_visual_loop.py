@@ -366,7 +366,7 @@ def test_dark_frames_align_on_slightly_blurred_images_and_never_to_an_alias(fram
             for lp in [*sharp_loops, *loops]:
                 assert abs(host.se3_log(host.inverse(lp.T) @ T_true)[3]) < 0.03, (mean, seed)
             accepted += [lp for lp in loops if lp.blur_px > 0]
-    # the default ladder: 1 px, and 2 px where 1 px aligned too few (these frames are dark)
+    # the default rungs (1 px; with a ladder also 2 px where 1 px aligned too few: these frames are dark)
     rungs = {r * LoopConfig().visual_dim_blur_px for r in range(1, LoopConfig().visual_dim_blur_rungs + 1)}
     assert accepted and all(lp.blur_px in rungs for lp in accepted)
 
@@ -411,7 +411,8 @@ def test_the_dim_retry_climbs_its_blur_rungs_and_inflates_the_blurred_variance(s
     assert tried == [0.0, 1.0, 2.0] and len(gated) == 1
     gated, tried = run(2.0, visual_dim_blur_rungs=2, visual_dim_ladder_max_grey=grey)
     assert gated == [] and tried == [0.0, 1.0]  # as bright as the gate: one rung only
-    closer = _closer(rig, visual_wide_drift_per_m=0.0, visual_peak_ratio=0.95, visual_dim_ladder_max_grey=255.0)
+    ladder = {"visual_dim_blur_rungs": 2, "visual_dim_ladder_max_grey": 255.0}
+    closer = _closer(rig, visual_wide_drift_per_m=0.0, visual_peak_ratio=0.95, **ladder)
     closer.detect(_query(T_old, wrong, travelled=15.0), img_cur, {0: f_old}, {0: img_old})
     assert closer.ladder_climbs == 1  # counted (metrics.json: visual_loop_ladder_climbs)
     assert run(0.0, visual_dim_blur_rungs=3)[1] == [0.0]  # the sharp images align: no rung
