@@ -136,9 +136,9 @@ class VisualLoopCloser:
         self.rejected: list[tuple[int, int, str]] = []
         self.attempts = 0
         self.wide_searches = 0
+        """Candidates searched again at ``visual_wide_drift_per_m``."""
         self.ladder_climbs = 0
         """Alignments on a blur rung above the first (``visual_dim_blur_rungs``)."""
-        """Candidates searched again at ``visual_wide_drift_per_m``."""
         self.last_hypotheses: list[tuple[int, float]] = []
         """The last verification's aligned hypotheses: (patches aligned, shift in m), best first."""
 
