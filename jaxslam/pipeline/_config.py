@@ -478,14 +478,15 @@ class LoopConfig:
     them again on images blurred by this much (Gaussian, px; 0 = off). In a dark stretch
     (mean grey level ~4 at full gain) the sensor noise caps a true patch's NCC on sharp
     images well below ``visual_min_ncc``; a 1 px blur lifts it (see README)."""
-    visual_dim_blur_rungs: int = 1
+    visual_dim_blur_rungs: int = 2
     """How many blurs the dim retry climbs: rung r aligns on images blurred by r x
     ``visual_dim_blur_px``, tried only when the rung before aligned too few patches (and,
-    above the first, only in the dark: ``visual_dim_ladder_max_grey``). Measured in session
-    35 with 2, the gate at 12 and ``visual_blur_noise_px: 1`` on all 30 benchmark runs: dark
-    seeds 8 / 12 APE 0.041 / 0.076 -> 0.024 / 0.030 m, but uneven 13's loop error 0.020 ->
-    0.040 m (no 2 px alignment there: the inflation of its 1 px loops moved it), both goals
-    on 28 of 30 either way; kept at 1 (see README)."""
+    above the first, only in the dark: ``visual_dim_ladder_max_grey``). 2 since session 36:
+    on the 15 dark benchmark seeds (0-14) dark 8 / 12 APE 0.041 / 0.076 -> 0.022 / 0.013 m,
+    every dark run within both goals, the uneven runs unchanged (only seeds 3 and 8 have
+    frames darker than the gate, and neither climbed); held out: dark seeds 15 / 16 (see
+    README). With ``visual_blur_noise_px: 1`` as well (session 35) uneven 13's loop error
+    went past the goal, so the blurred loops keep the reprojection Hessian's variance."""
     visual_dim_ladder_max_grey: float = 12.0
     """Rungs above the first (``visual_dim_blur_rungs`` > 1) are climbed only where both
     images' mean raw grey level is below this (255 = everywhere): the blur that lifts a true
