@@ -116,6 +116,7 @@ def main() -> None:
                             "registered_frames",
                             "total_frames",
                             "runtime_s",
+                            "compile_s",
                             "sequence_duration_s",
                             "degenerate_scans",
                             "lidar_scans",

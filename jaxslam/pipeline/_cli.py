@@ -136,6 +136,7 @@ def print_summary(m: dict[str, Any], out: str | Path, paper: bool = False) -> No
         f"time: {m['runtime_s']:.1f} s for {m['sequence_duration_s']:.1f} s of recording "
         f"({m['runtime_s'] / max(m['sequence_duration_s'], 1e-9):.2f}x real time"
         + (f" on {m['machine']['cpu']}, {m['machine']['cpus']} CPUs" if "machine" in m else "")
+        + (f"; JIT compilation in it: {m['compile_s']:.1f} s of CPU" if m.get("compile_s") is not None else "")
         + ")"
     )
     if m.get("warnings"):

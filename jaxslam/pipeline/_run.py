@@ -18,7 +18,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .._machine import machine_info
+from .._machine import compile_seconds, machine_info
 from ..errors import ConfigError, InputFormatError
 from ..io import open_recording, write_kitti, write_ply, write_tum
 from ..io._reindex import reindex
@@ -219,6 +219,7 @@ def run_recording(
     from .. import eval as ev
 
     t_start = time.perf_counter()
+    compile_start = compile_seconds()
     config = config or PipelineConfig()
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
@@ -264,6 +265,7 @@ def run_recording(
         est.warnings[f"recording: {k}"] += v
     res = est.finish()
     runtime = time.perf_counter() - t_start
+    compile_s = compile_seconds() - compile_start  # JIT work inside the run, apart
     if not len(res["times"]):
         raise InputFormatError("no keyframe could be made (no IMU, or the recording is too short)", path)
     poses = res["poses"]
@@ -291,6 +293,7 @@ def run_recording(
         "total_frames": stats["input_images"],
         "reproj_rmse_px": stats["reproj_rmse_px"],
         "runtime_s": runtime,
+        "compile_s": compile_s,
         "sequence_duration_s": float(min(t_end, est.t_last) - t_begin) if est.t_first is not None else 0.0,
         "degenerate_scans": lidar.degenerate if lidar else 0,
         "lidar_scans": lidar.processed if lidar else 0,

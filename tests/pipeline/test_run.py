@@ -119,6 +119,7 @@ def test_run_recording_writes_the_results_folder(bag, config, tmp_path) -> None:
         assert key in saved, key
     assert saved["ape_rmse_m"] == pytest.approx(m["ape_rmse_m"])
     assert saved["machine"]["cpus"] >= 1 and saved["machine"]["cpu"]  # timings say what they ran on
+    assert saved["compile_s"] >= 0.0  # JIT compilation inside the run, reported apart
     assert saved["zero_velocity_updates"] > 0  # the stops at both ends and the turn on the spot
     assert saved["ape_rmse_m"] < 0.1
     assert saved["loops_false"] in (0, None)
@@ -341,8 +342,10 @@ def test_cli_run_shows_progress(bag, tmp_path, capsys) -> None:
 
     out = tmp_path / "out"
     assert main(["run", str(bag), "-o", str(out), "--max-seconds", "4", "--no-plots"]) == 0
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     assert "run:" in err and "/? s" in err and " s [" in err, err[-500:]
+    assert "real time" in captured.out and "JIT compilation in it: " in captured.out  # compile apart
     assert (out / "trajectory_tum.txt").stat().st_size > 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["rpe_rmse"] is None and m["ape_rmse_m"] < 0.1
