@@ -59,6 +59,8 @@ import scipy.sparse as sp
 from ..core import Factor, MarginalFactor, Values, Variable, linearize
 from ..errors import ConfigError, GraphError
 from ..lie import mm, mT
+from ._bayestree import BayesTree
+from ._bayestree import NotPositiveDefinite as TreeNotPositiveDefinite
 from ._blocks import BlockInformation, NotPositiveDefinite, pairs
 from ._blocks import one_blas_thread as _one_blas_thread
 from ._nls import Solver, SolverConfig, SolverResult
@@ -80,13 +82,26 @@ class IncrementalConfig:
     mode: Literal["incremental", "batch"] = "incremental"
     """``batch``: every update re-solves the whole graph with Levenberg-Marquardt (the
     reference, GTSAM's batch smoother); same API, so a pipeline switches by config."""
-    relinearize_threshold: float = 0.05
+    engine: Literal["window", "bayes_tree"] = "window"
+    """How an incremental update solves the linear system. ``window``: an exact step over a
+    window of recent variables with the rest held, widened over a loop that disagrees, and a
+    full solve every ``full_solve_every`` updates. ``bayes_tree``: iSAM2's algorithm, the
+    system kept factorised as a Bayes tree whose top (the cliques above the touched
+    variables) is re-eliminated at every update, then back-substituted with the
+    ``wildfire`` threshold (``window``, ``loop_*`` and ``full_solve_*`` do not apply)."""
+    wildfire: float = 0.001
+    """``bayes_tree``: below the re-eliminated top, a subtree is back-substituted further
+    only where a clique's offsets changed by more than this (iSAM2's wildfire threshold,
+    0.001 by default there); 0 solves every clique at every update (exact, O(graph))."""
+    relinearize_threshold: float | None = None
     """Relinearise a variable when its tangent offset from the linearisation point exceeds
-    this (infinity norm; iSAM2's default is 0.1, 0.05 ended closer to the optimum on
-    parking-garage at no measurable cost)."""
-    relinearize_skip: int = 1
+    this (infinity norm). None: 0.05 for ``window`` (0.05 ended closer to the optimum on
+    parking-garage at no measurable cost), 0.1 for ``bayes_tree`` (iSAM2's default)."""
+    relinearize_skip: int | None = None
     """Check for variables to relinearise only every this many updates (iSAM2's
-    ``relinearizeSkip``, 10 by default there); 1 = at every update."""
+    ``relinearizeSkip``); 1 = at every update. None: 1 for ``window``, 10 for ``bayes_tree``
+    (iSAM2's default: a check brings every offset up to date, and the relinearisations of
+    ten updates re-eliminate their shared ancestors once)."""
     window: int = 10
     """Every update re-solves the variables of the last ``window`` updates (and all the
     update touched) with the rest held."""
@@ -152,6 +167,7 @@ class _Store:
         self.dof = np.zeros(cap, np.int64)  # first global dof of each row (permanent)
         self.born = np.zeros(cap, np.int64)  # update number that added it
         self.live = np.zeros(cap, bool)  # False once marginalised
+        self.vnum = np.zeros(cap, np.int64)  # the solver-wide variable number of each row
         self.row_of: dict[int, int] = {}
 
     def _grow(self, need: int) -> None:
@@ -159,7 +175,7 @@ class _Store:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ("ids", "x", "x_lin", "delta", "dof", "born", "live"):
+        for name in ("ids", "x", "x_lin", "delta", "dof", "born", "live", "vnum"):
             old = getattr(self, name)
             arr = np.zeros((new, *old.shape[1:]), old.dtype)
             arr[:cap] = old
@@ -215,6 +231,7 @@ class _Group:
             for leaf, b in zip(leaves, self.batched)
         ]
         self.rows = np.zeros((cap, len(slots)), np.int64)
+        self.vars = np.zeros((cap, len(slots)), np.int64)  # solver-wide variable numbers
         self.alive = np.zeros(cap, bool)
         self.newest = np.zeros(cap, np.int64)  # latest update that added one of its variables
         self.J = np.zeros((cap, self.rdim, self.T))
@@ -232,6 +249,7 @@ class _Group:
         self.sel_p = np.asarray(sel_p, np.int64)
         self.sel_q = np.asarray(sel_q, np.int64)
         self.G = np.zeros((cap, self.T, self.T))  # J^T J per constraint (cached: no delta in it)
+        self.b = np.zeros((cap, self.T))  # J^T r per constraint (at x_lin)
         # slots of its Gram blocks in the solver's BlockInformation (-1: not there yet)
         self.bslots = np.full((cap, len(pairs(len(slots)))), -1, np.int64)
 
@@ -248,7 +266,7 @@ class _Group:
 
         self.buffers = [None if b is None else g(b) for b in self.buffers]
         self.rows, self.alive, self.J, self.r = g(self.rows), g(self.alive), g(self.J), g(self.r)
-        self.G = g(self.G)
+        self.G, self.b, self.vars = g(self.G), g(self.b), g(self.vars)
         self.newest = g(self.newest)
         bslots = np.full((new, self.bslots.shape[1]), -1, np.int64)
         bslots[:cap] = self.bslots
@@ -421,10 +439,12 @@ class IncrementalSolver:
         if self.config.linear_solver == "cholmod" and not _HAVE_CHOLMOD:
             raise ValueError("linear solver 'cholmod' needs scikit-sparse (pip install 'jaxslam[cholmod]')")
         self._method = "cholmod" if self.config.linear_solver in ("auto", "cholmod") and _HAVE_CHOLMOD else "splu"
-        if self.config.relinearize_skip < 1:
-            raise ConfigError(
-                f"relinearize_skip must be >= 1 (1: check at every update), got {self.config.relinearize_skip}"
-            )
+        tree = self.config.engine == "bayes_tree"
+        thr, skip = self.config.relinearize_threshold, self.config.relinearize_skip
+        self._relin_threshold = float((0.1 if tree else 0.05) if thr is None else thr)
+        self._relin_skip = int((10 if tree else 1) if skip is None else skip)
+        if self._relin_skip < 1:
+            raise ConfigError(f"relinearize_skip must be >= 1 (1: check at every update), got {self._relin_skip}")
         cs = tuple(self.config.chunk_sizes)
         if not cs or any(c < 1 for c in cs) or list(cs) != sorted(set(cs)):
             raise ConfigError(f"chunk_sizes must be distinct positive row counts in ascending order, got {cs}")
@@ -449,6 +469,15 @@ class IncrementalSolver:
         self._blocks: BlockInformation | None = None
         self._blocks_off = self.config.lag is not None or self._method != "cholmod"
         self._store_list: list[_Store] = []
+        if self.config.engine not in ("window", "bayes_tree"):
+            raise ConfigError(f"engine must be 'window' or 'bayes_tree', got {self.config.engine!r}")
+        if self.config.engine == "bayes_tree" and self.config.lag is not None:
+            raise ConfigError("fixed-lag smoothing (lag) needs engine='window'")
+        if not self.config.wildfire >= 0.0:
+            raise ConfigError(f"wildfire must be >= 0, got {self.config.wildfire}")
+        self._tree = BayesTree(self.config.wildfire) if self.config.engine == "bayes_tree" else None
+        self._tree_stale = False  # every linearisation changed: re-eliminate all at the next update
+        self._nvar = 0
 
     # --- variables and factors -------------------------------------------------------------
     def _store(self, vtype: type[Variable]) -> _Store:
@@ -470,6 +499,11 @@ class IncrementalSolver:
                 raise GraphError(f"{vtype.__name__} values are not finite (NaN or inf)")
             s = self._store(vtype)
             rows = s.add(ids, params, self._ndof, self.updates)
+            if self._tree is not None:
+                s.vnum[rows] = self._tree.add_vars(s.dof[rows], np.full(len(rows), s.td, np.int64))
+            else:
+                s.vnum[rows] = np.arange(self._nvar, self._nvar + len(rows))
+            self._nvar += len(rows)
             self._ndof += s.td * len(ids)
             out.append((s, rows))
         return out
@@ -500,6 +534,8 @@ class IncrementalSolver:
         born = [self._store_list[si].born[r] for si, r in zip(slots, rows)]
         newest = np.max(np.stack(born, axis=1), axis=1) if n else np.zeros(0, np.int64)
         idx = g.add(f, np.stack(rows, axis=1) if n else np.zeros((0, len(rows)), np.int64), newest)
+        for k, (si, r) in enumerate(zip(slots, rows)):
+            g.vars[idx, k] = self._store_list[si].vnum[r]
         for slot, r in zip(slots, rows):
             for c, vr in zip(idx.tolist(), r.tolist()):
                 self._adj.setdefault((slot, vr), []).append((gi, c))
@@ -541,7 +577,7 @@ class IncrementalSolver:
             return
         J, g.r[idx], _ = self._linearize_rows(g, idx, "lin")
         g.J[idx] = J
-        G = self._gram(J, g.r[idx])[0]
+        G, g.b[idx] = self._gram(J, g.r[idx])
         B = self._blocks
         if B is not None:  # the blocks change by new - old (a new constraint's old G is 0)
             var = self._block_vars(g, idx)
@@ -574,10 +610,13 @@ class IncrementalSolver:
         cfg = self.config
         affected: dict[int, set[int]] = {}  # store -> rows
         dirty: dict[int, list[int]] = {}  # group -> constraints to relinearise
+        removed_vars: list[np.ndarray] = []
+        new_vars: list[np.ndarray] = []
         self._validate(new_factors, new_values, remove)
         if new_values is not None and len(new_values):
             for s, rows in self._add_values(new_values):
                 affected.setdefault(s.index, set()).update(rows.tolist())
+                new_vars.append(s.vnum[rows])
         handles = []
         new_refs: list[tuple[int, int]] = []
         for i, f in enumerate(new_factors):
@@ -594,6 +633,8 @@ class IncrementalSolver:
             g.J[idx] = 0.0
             g.r[idx] = 0.0
             g.G[idx] = 0.0
+            g.b[idx] = 0.0
+            removed_vars.append(g.vars[idx].ravel())
             for k, si in enumerate(g.slots):
                 affected.setdefault(si, set()).update(g.rows[idx, k].tolist())
         for gi, c in new_refs:
@@ -604,13 +645,14 @@ class IncrementalSolver:
         # fluid relinearisation
         nrelin = 0
         moved_rows = []
-        check = self.updates % cfg.relinearize_skip == 0
+        # every k-th update, counting from 1 as iSAM2 does (its 10th, 20th, ... update)
+        check = (self.updates + 1) % self._relin_skip == 0
+        if check:
+            self.flush()
         for s in self._store_list:
             moved = np.zeros(0, np.int64)
             if s.n and check:
-                moved = np.nonzero(
-                    s.live[: s.n] & (np.max(np.abs(s.delta[: s.n]), axis=1) > cfg.relinearize_threshold)
-                )[0]
+                moved = np.nonzero(s.live[: s.n] & (np.max(np.abs(s.delta[: s.n]), axis=1) > self._relin_threshold))[0]
             moved_rows.append(moved)
             nrelin += moved.size
             for r in moved.tolist():
@@ -619,14 +661,21 @@ class IncrementalSolver:
         dirty_idx = {gi: np.unique(np.asarray(cs, np.int64)) for gi, cs in dirty.items()}
         # the linear model's cost changes by what the new and relinearised constraints
         # bring (a new constraint had J = r = 0): the bound on what a full solve can gain
-        model_before = sum(self._model_cost(self._group_list[gi], idx) for gi, idx in dirty_idx.items())
+        window = self._tree is None
+        model_before = 0.0
+        if window:
+            model_before = sum(self._model_cost(self._group_list[gi], idx) for gi, idx in dirty_idx.items())
         for s, moved in zip(self._store_list, moved_rows):
             if moved.size:
                 s.x_lin[moved] = s.x[moved]
                 s.delta[moved] = 0.0
+                if self._tree is not None:
+                    self._tree.dx[(s.dof[moved][:, None] + np.arange(s.td)).ravel()] = 0.0
         for gi, idx in dirty_idx.items():
             self._relinearize(gi, idx)
-        model_after = sum(self._model_cost(self._group_list[gi], idx) for gi, idx in dirty_idx.items())
+        model_after = 0.0
+        if window:
+            model_after = sum(self._model_cost(self._group_list[gi], idx) for gi, idx in dirty_idx.items())
         self._excess_bound += max(0.0, model_after - model_before)
         if len(remove):
             self._excess_bound = np.inf  # removing a factor can lower the optimum: no bound
@@ -638,6 +687,15 @@ class IncrementalSolver:
             nmarg = self._marginalize() if cfg.lag is not None else 0
             self.updates += 1
             return UpdateResult(handles, True, nrelin, nmarg, time.perf_counter() - t0)
+        if self._tree is not None:
+            new_fac: dict[int, list[int]] = {}
+            for gi, c in new_refs:
+                new_fac.setdefault(gi, []).append(c)
+            marked = list(new_vars)
+            marked += [self._group_list[gi].vars[idx].ravel() for gi, idx in dirty_idx.items()]
+            full = self._tree_update(marked + removed_vars, new_fac)
+            self.updates += 1
+            return UpdateResult(handles, full, nrelin, 0, time.perf_counter() - t0)
         loop_t0 = self._loop_window(new_refs)
         due = self._since_full + 1 >= cfg.full_solve_every
         full = due and self._full_solve_needed()  # a skipped one would have changed nothing
@@ -657,6 +715,70 @@ class IncrementalSolver:
             self._excess_bound = np.inf
         self.updates += 1
         return UpdateResult(handles, full, nrelin, nmarg, time.perf_counter() - t0)
+
+    def _tree_update(self, marked: list[np.ndarray], new_fac: dict[int, list[int]]) -> bool:
+        """The Bayes tree's step: re-eliminate above the ``marked`` variables (adding the
+        constraints ``new_fac``), back-substitute, and move the estimate of every variable
+        whose offset was recomputed. True when every variable was re-eliminated."""
+        tree = self._tree
+        if tree is None:
+            return False
+        fac = {gi: np.asarray(cs, np.int64) for gi, cs in new_fac.items()}
+        if self._tree_stale:  # every linearisation changed: eliminate everything afresh
+            tree.clear()
+            fac = {gi: np.nonzero(g.alive[: g.n])[0] for gi, g in enumerate(self._group_list) if g.n}
+            marked = [s.vnum[np.nonzero(s.live[: s.n])[0]] for s in self._store_list]
+            self._tree_stale = False
+        allm = np.concatenate(marked) if marked else np.zeros(0, np.int64)
+        try:
+            changed = tree.update(allm, fac, self._group_list)
+        except TreeNotPositiveDefinite as err:
+            self._tree_stale = True  # the tree lost its top: rebuild it at the next update
+            raise GraphError(
+                "the linear system is not positive definite: some variables are under-constrained "
+                "(add a prior on one variable of each connected component)"
+            ) from err
+        self._sync_offsets(changed)
+        return tree.last_reeliminated == sum(int(s.live[: s.n].sum()) for s in self._store_list)
+
+    def _sync_offsets(self, vnums: np.ndarray) -> None:
+        """Copy the Bayes tree's offsets of variables ``vnums`` into the stores and move
+        their estimates."""
+        tree = self._tree
+        if tree is None or vnums.size == 0:
+            return
+        for s in self._store_list:
+            if s.n == 0:
+                continue
+            lo, hi = s.vnum[0], s.vnum[s.n - 1]
+            # a store's variable numbers increase with its rows
+            mine = vnums[(vnums >= lo) & (vnums <= hi)]
+            if mine.size == 0:
+                continue
+            rows = np.searchsorted(s.vnum[: s.n], mine)
+            ok = s.vnum[rows] == mine
+            rows = rows[ok]
+            if rows.size == 0:
+                continue
+            s.delta[rows] = tree.dx[s.dof[rows][:, None] + np.arange(s.td)]
+            self._set_estimate(s, rows)
+
+    def flush(self) -> None:
+        """Bring every offset and estimate up to date: the Bayes tree engine back-substitutes
+        lazily (:meth:`estimate`, :meth:`cost` and the relinearisation check call this;
+        :meth:`value` updates only the one variable's path). Nothing to do for ``window``."""
+        if self._tree is not None and self._tree.pending:
+            self._sync_offsets(self._tree.solve_pending())
+
+    def _tree_full(self) -> None:
+        """Re-eliminate and solve everything now (the exact Gauss-Newton step)."""
+        tree = self._tree
+        if tree is None:
+            return
+        self._tree_stale = True
+        self._tree_update([], {})
+        tree.solve_all()
+        self._sync_offsets(np.arange(tree.nvar))
 
     def _validate(self, factors: Sequence[Factor], values: Values | None, remove: Sequence[int]) -> None:
         """Reject a bad update before anything changes (so a rejected update loses nothing)."""
@@ -933,6 +1055,7 @@ class IncrementalSolver:
                     g.bslots[new] = B.slots(var)
                     B.add(g.bslots[new], var, g.G[new])
         self._blocks = B
+        self._tree_stale = self._tree is not None
 
     def _gram(self, J: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         m = len(J)
@@ -1035,6 +1158,7 @@ class IncrementalSolver:
         """Relinearise everything and solve the whole graph to convergence with the batch
         solver (Levenberg-Marquardt by default): afterwards the estimate is the batch optimum
         from the current estimate, the linearisation is fresh and the offsets are zero."""
+        self.flush()
         factors = []
         for g in self._group_list:
             idx = np.nonzero(g.alive[: g.n])[0]
@@ -1062,6 +1186,8 @@ class IncrementalSolver:
         self._relinearize_all()
         self._since_full = 0
         self._excess_bound = np.inf  # a new linear model: nothing known about it
+        if self._tree is not None:
+            self._tree.dx[:] = 0.0
         return result
 
     def refine(self, max_iterations: int = 10, relative_tol: float = 1e-10) -> tuple[float, float, int]:
@@ -1071,6 +1197,7 @@ class IncrementalSolver:
         Reaches the batch optimum like :meth:`optimize` from a good estimate, without
         compiling the batch solver's programs (tens of seconds on a fresh process). Returns
         ``(initial cost, final cost, iterations)``."""
+        self.flush()
         first = prev = self.cost()
         it = 0
         for it in range(1, max_iterations + 1):  # noqa: B007 - reported
@@ -1080,12 +1207,18 @@ class IncrementalSolver:
                 s.x_lin[live] = s.x[live]
                 s.delta[live] = 0.0
             self._relinearize_all()
-            self._window_solve(0, {})
+            if self._tree is not None:
+                self._tree.dx[:] = 0.0
+                self._tree_full()
+            else:
+                self._window_solve(0, {})
             self._since_full = 0
             cost = self.cost()
             if not cost <= prev:  # worse (or NaN): undo the step and stop
                 for s, (x, xl, d) in zip(self._store_list, saved):
                     s.x[: s.n], s.x_lin[: s.n], s.delta[: s.n] = x, xl, d
+                    if self._tree is not None:
+                        self._tree.dx[(s.dof[: s.n][:, None] + np.arange(s.td)).ravel()] = d.ravel()
                 self._relinearize_all()
                 self._excess_bound = np.inf
                 break
@@ -1098,6 +1231,7 @@ class IncrementalSolver:
     # --- queries ---------------------------------------------------------------------------------
     def cost(self) -> float:
         """Total cost of the current estimate (GTSAM's ``graph.error``)."""
+        self.flush()
         total = 0.0
         for g in self._group_list:
             idx = np.nonzero(g.alive[: g.n])[0]
@@ -1108,6 +1242,7 @@ class IncrementalSolver:
 
     def estimate(self) -> Values:
         """Current estimate of every variable (marginalised ones at their last estimate)."""
+        self.flush()
         ids = {}
         params = {}
         for s in self._store_list:
@@ -1122,6 +1257,8 @@ class IncrementalSolver:
         if s is None:
             raise GraphError(f"no {vtype.__name__} variables")
         row = s.rows(np.array([id_]), "value")[0]
+        if self._tree is not None and self._tree.pending:  # only the cliques on its path
+            self._sync_offsets(self._tree.solve_path(int(s.vnum[row])))
         return s.x[row].copy()
 
     def marginal_covariance(self, var: Variable) -> np.ndarray:
@@ -1131,6 +1268,7 @@ class IncrementalSolver:
         s = self.stores.get(type(var))
         if s is None:
             raise GraphError(f"no {type(var).__name__} variables")
+        self.flush()
         rows = s.rows(np.asarray(var.ids).reshape(-1), "marginal_covariance")
         if not np.all(s.live[rows]):
             raise GraphError(f"{type(var).__name__}: marginalised variables have no covariance here")

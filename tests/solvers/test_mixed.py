@@ -13,49 +13,20 @@ from jaxslam.core import BiasVar, Gaussian, Point3Var, Pose3Var, Values, Velocit
 from jaxslam.factors import (
     BiasRandomWalkFactor,
     ImuFactor,
-    PreintegrationParams,
     PriorFactor,
     ReprojectionFactor,
     pinhole_project,
-    predict_imu_state,
-    preintegrate,
 )
 from jaxslam.lie import SE3
 from jaxslam.solvers import SolverConfig, Status, optimize
 
+from ._imu_chain import imu_chain
+
 
 def test_imu_chain_recovers_the_generating_states() -> None:
     rng = np.random.default_rng(3)
-    n_kf, m, rate = 8, 40, 200.0
-    params = PreintegrationParams.make_shared_u(
-        9.81,
-        accelerometer_noise_density=0.02,
-        gyroscope_noise_density=0.002,
-        accelerometer_random_walk=1e-3,
-        gyroscope_random_walk=1e-4,
-        integration_sigma=1e-4,
-    )
-    # a smoothly turning, accelerating motion: gravity plus varying body readings
-    t = np.arange((n_kf - 1) * m) / rate
-    gyro = np.stack([0.2 * np.sin(t), 0.1 * np.cos(0.5 * t), 0.3 + 0.0 * t], axis=1)
-    acc = np.stack([0.5 * np.cos(t), 0.2 * np.sin(t), 9.81 + 0.1 * np.sin(2 * t)], axis=1)
-    pim = preintegrate(
-        acc.reshape(n_kf - 1, m, 3), gyro.reshape(n_kf - 1, m, 3), np.full((n_kf - 1, m), 1 / rate), params
-    )
-    # generating states: chain the predictions from a known start (zero bias)
-    poses, vels = [SE3.exp(jnp.asarray([0.1, -0.2, 0.3, 1.0, 2.0, 0.5]))], [jnp.asarray([1.0, 0.0, 0.2])]
-    for k in range(n_kf - 1):
-        p, v = predict_imu_state(
-            pim.preintegrated[k : k + 1],
-            pim.delta_time[k : k + 1],
-            params.gravity[None],
-            poses[-1][None],
-            vels[-1][None],
-        )
-        poses.append(p[0])
-        vels.append(v[0])
-    truth_p = np.stack([np.asarray(p.params) for p in poses])
-    truth_v = np.stack([np.asarray(v) for v in vels])
+    n_kf = 8
+    params, pim, truth_p, truth_v = imu_chain(n_kf, 40)
     ids = np.arange(n_kf)
     i, j = ids[:-1], ids[1:]
     factors = [
