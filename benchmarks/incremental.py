@@ -128,20 +128,18 @@ def run_ours(stream: Stream, cfg: IncrementalConfig, checkpoints: set[int]) -> t
     solver = IncrementalSolver(cfg)
     vt = stream.vt
     lat = []
-    store = None
     ck = {}
     full = 0
 
-    def est_of(i):
-        return store.x[store.row_of[i]]
+    def est_of(i):  # through the API (like iSAM2's calculateEstimate in run_isam2): brings it up to date
+        return solver.value(vt, i)
 
     for k, (vid, facs, e, x0) in enumerate(stream.updates):
         x = initial_guess(stream, k, vid, e, x0, est_of)
         vals = Values({vt: np.asarray([vid])}, {vt: jax.numpy.asarray(x[None])})
         t = time.perf_counter()
         res = solver.update(facs, vals)
-        store = solver.stores[vt]
-        _ = store.x[store.row_of[vid]]
+        _ = solver.value(vt, vid)
         lat.append(time.perf_counter() - t)
         full += res.full_solve
         if k in checkpoints:
@@ -288,13 +286,28 @@ def main() -> None:
     ap.add_argument("--window", type=int, default=IncrementalConfig.window)
     ap.add_argument("--full-solve-every", type=int, default=IncrementalConfig.full_solve_every)
     ap.add_argument("--loop-chi2", type=float, default=IncrementalConfig.loop_chi2)
-    ap.add_argument("--relinearize-threshold", type=float, default=IncrementalConfig.relinearize_threshold)
+    ap.add_argument(
+        "--relinearize-threshold",
+        type=float,
+        default=None,
+        help="default: the engine's (0.05 window, 0.1 bayes_tree)",
+    )
     ap.add_argument("--full-solve-tol", type=float, default=IncrementalConfig.full_solve_tol)
     ap.add_argument(
         "--relinearize-skip",
         type=int,
-        default=IncrementalConfig.relinearize_skip,
-        help="check for variables to relinearise every this many updates (iSAM2's relinearizeSkip)",
+        default=None,
+        help="check for variables to relinearise every this many updates (iSAM2's relinearizeSkip; "
+        "default: the engine's, 1 window, 10 bayes_tree)",
+    )
+    ap.add_argument(
+        "--engine",
+        choices=["window", "bayes_tree"],
+        default=IncrementalConfig.engine,
+        help="how an update solves the linear system (IncrementalConfig.engine)",
+    )
+    ap.add_argument(
+        "--wildfire", type=float, default=IncrementalConfig.wildfire, help="bayes_tree's wildfire threshold"
     )
     ap.add_argument("--checkpoints", type=int, default=10)
     ap.add_argument("--guess", choices=["file", "chain"], default="chain", help="initial value of each new vertex")
@@ -317,6 +330,8 @@ def main() -> None:
         relinearize_threshold=a.relinearize_threshold,
         full_solve_tol=a.full_solve_tol,
         relinearize_skip=a.relinearize_skip,
+        engine=a.engine,
+        wildfire=a.wildfire,
     )
     results = [bench_file(f, cfg, a.checkpoints) for f in a.files]
     for r in results:
