@@ -552,6 +552,10 @@ class LoopConfig:
 class SolverOptions:
     mode: str = "incremental"
     """``incremental`` (jaxslam's iSAM2-class solver) or ``batch`` (LM every keyframe)."""
+    engine: str = "window"
+    """The incremental solver's engine (``IncrementalConfig.engine``): ``window`` or
+    ``bayes_tree`` (iSAM2's partial re-elimination; the benchmark figures of the estimator
+    were measured with ``window``)."""
     final_optimize: bool = True
     """After the last keyframe, relinearise everything and solve to the batch optimum
     (``IncrementalSolver.refine``: Gauss-Newton with the incremental solver's compiled
@@ -604,6 +608,7 @@ _CHOICES = {
     "detector": ("surf", "sift", "orb"),
     "scale_depth": ("map", "scan"),
     "mode": ("incremental", "batch"),
+    "engine": ("window", "bayes_tree"),
     "lidar_model": ("hap", "ring16"),
     "odometry_kernel": ("cauchy", "huber"),
     "scale_revert_to": ("one", "run"),

@@ -173,7 +173,11 @@ class Estimator:
             else None
         )
         self.solver = IncrementalSolver(
-            IncrementalConfig(mode=config.solver.mode, chunk_sizes=tuple(config.solver.chunk_sizes))  # type: ignore[arg-type]
+            IncrementalConfig(
+                mode=config.solver.mode,  # type: ignore[arg-type]
+                engine=config.solver.engine,  # type: ignore[arg-type]
+                chunk_sizes=tuple(config.solver.chunk_sizes),
+            )
         )
         self.keyframes: list[Keyframe] = []
         self.state: NavState | None = None  # estimate at the last keyframe
@@ -725,6 +729,7 @@ class Estimator:
 
     def _poses(self) -> np.ndarray:
         """Current keyframe pose estimates (K, 4, 4) (the newest keyframe at its prediction)."""
+        self.solver.flush()  # the Bayes tree engine back-substitutes lazily
         s = self.solver.stores[Pose3Var]
         order = np.argsort(s.ids[: s.n], kind="stable")
         P = host.params_to_matrix(s.x[: s.n][order])

@@ -283,6 +283,12 @@ def test_pair_lists_take_any_length():
             config_from_dict({"vision": {"pairs": bad}})
 
 
+def test_solver_engine_is_checked():
+    assert config_from_dict({"solver": {"engine": "bayes_tree"}}).solver.engine == "bayes_tree"
+    with pytest.raises(ConfigError, match="engine"):
+        config_from_dict({"solver": {"engine": "isam"}})
+
+
 def test_solver_chunk_sizes_any_length_ascending():
     assert config_from_dict({"solver": {"chunk_sizes": [8, 64, 512]}}).solver.chunk_sizes == (8, 64, 512)
     for bad in ([], [64, 8], [0], [16, 16], [8.5]):

@@ -77,6 +77,19 @@ def test_clean_run_is_accurate(baseline, records) -> None:
     assert not [k for k in est.warnings if any(f in k for f in faults)], est.warnings
 
 
+def test_bayes_tree_engine_runs_the_estimator(baseline, records, config) -> None:
+    """``solver.engine: bayes_tree`` (iSAM2's partial re-elimination, lazy back-substitution)
+    gives a trajectory as good as the default engine's; the final refinement takes both to
+    the same optimum."""
+    _, res0, ape0 = baseline
+    est, res, ape = _run(records, config.replace(solver={"engine": "bayes_tree"}))
+    assert est.solver.config.engine == "bayes_tree"
+    assert ape < 0.1 and ape <= 1.5 * ape0 + 0.01, (ape, ape0)
+    assert len(res["poses"]) == len(res0["poses"])
+    drift = np.linalg.norm(res["poses"][:, :3, 3] - res0["poses"][:, :3, 3], axis=1)
+    assert np.median(drift) < 0.05, np.median(drift)
+
+
 def test_visual_poses_are_fitted_on_aligned_patches(baseline, records, config) -> None:
     """``vision.patch_refine`` (the default): most visual-odometry poses are fitted again on
     the older image's patches found in the newer one; off, none are and the run stays
