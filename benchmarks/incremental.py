@@ -11,10 +11,12 @@ prior (sigma 1e-6) unless the file fixes it. Each solver chains the new vertex's
 guess from *its own* current estimate through the most recent edge (as GTSAM's examples do).
 
 Timed per update: ``update`` plus reading the new vertex's estimate (ours:
-``IncrementalSolver.update``; GTSAM: ``ISAM2.update`` + ``calculateEstimate(key)``, default
-``ISAM2Params``). Building the factor and value objects is not timed (for either). Both
-final estimates are scored by GTSAM on the whole graph (``graph.error``); the batch optimum
-is GTSAM's Levenberg-Marquardt on the whole graph started from iSAM2's final estimate.
+``IncrementalSolver.update`` + ``value(vtype, id)``; GTSAM: ``ISAM2.update`` +
+``calculateEstimate(key)``, default ``ISAM2Params``). ``--engine bayes_tree`` runs the
+solver's Bayes-tree engine (its relinearisation defaults are iSAM2's). Building the factor
+and value objects is not timed (for either). Both final estimates are scored by GTSAM on
+the whole graph (``graph.error``); the batch optimum is GTSAM's Levenberg-Marquardt on the
+whole graph started from iSAM2's final estimate.
 We also report jaxslam's cost after ``optimize()`` (full relinearisation), its relative gap
 to the batch optimum, and costs of both running estimates at checkpoints along the stream.
 
