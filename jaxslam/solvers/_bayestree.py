@@ -17,8 +17,9 @@ relinearised constraints, removed constraints, new variables):
 1. the cliques holding them and all their ancestors up to the root are removed (the
    "top"); their children that stay are *orphans*, whose cached factors summarise them;
 2. the top's variables are ordered again: AMD (CHOLMOD, when installed, for tops of 16
-   variables or more) on the top's own graph, with the new variables last, so the next
-   update's new odometry edge touches the root only (GTSAM's constrained ordering);
+   variables or more) on the top's own graph, with the new variables and those of new
+   constraints last, so the next update's new odometry edge touches the root only (GTSAM's
+   constrained ordering);
 3. symbolic elimination (the elimination tree; a variable joins its parent's clique when
    that adds at most ``relax`` zero blocks to its row and the clique has fewer than
    ``max_frontal`` frontal variables: relaxed supernodes, fewer and larger dense blocks)
@@ -211,7 +212,7 @@ class BayesTree:
                 facs.append((gi, idx))
         loc = self._loc
         loc[top] = np.arange(m)
-        # 2. ordering: AMD on the top's graph, new constraints' variables last
+        # 2. ordering: AMD on the top's graph, new variables and new constraints' variables last
         last = np.zeros(m, bool)
         last[loc[parts[-1]]] = True  # new variables
         for gi, idx in new_fac.items():
