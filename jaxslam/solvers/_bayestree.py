@@ -128,7 +128,6 @@ class BayesTree:
         self.relax = 2
         self.max_frontal = 8
         self.last_reeliminated = 0  # variables re-eliminated by the last update
-        self.last_solved = 0  # cliques back-substituted by the last update
 
     # --- variables ------------------------------------------------------------------------
     def add_vars(self, dofs: np.ndarray, dims: np.ndarray) -> np.ndarray:
@@ -191,7 +190,6 @@ class BayesTree:
         m = len(top)
         self.last_reeliminated = m
         if m == 0:
-            self.last_solved = 0
             return top
         orphans = [ch for c in removed for ch in cl[c].children if ch not in seen]
         fac: dict[int, list[np.ndarray]] = {}
@@ -384,24 +382,21 @@ class BayesTree:
         for c in reversed(new):
             self._solve(c)
         self.pending.update(orphans)
-        self.last_solved = len(new)
         return top
 
-    def _visit(self, c: _Clique, force: bool) -> tuple[bool, bool]:
-        """Wildfire at one clique: recompute it when ``force`` or when its separator's offsets
-        drifted by more than the threshold since it was last solved. Returns (recomputed,
-        its children need a look: its frontal or separator offsets moved by more than the
-        threshold; the separator part is what GTSAM's check of a child's parent keys
-        catches: a change further up the path that this clique's own offsets did not show)."""
+    def _visit(self, c: _Clique) -> tuple[bool, bool]:
+        """Wildfire at one clique: recompute it when its separator's offsets drifted by more
+        than the threshold since it was last solved. Returns (recomputed, its children need a
+        look): the children need one when its frontal or separator offsets moved by more than
+        the threshold; the separator part is what GTSAM's check of a child's parent keys
+        catches, a change further up the path that this clique's own offsets did not show."""
         wf = self.wildfire
         sep = self.dx[c.sdofs]
         drift = float(np.max(np.abs(sep - c.sep_used))) if sep.size else 0.0
-        if not force and wf > 0.0 and drift <= wf:
+        if wf > 0.0 and drift <= wf:
             return False, False
         old = self.dx[c.fdofs]
-        new = c.Rinv @ (c.d - c.S @ sep) if sep.size else c.Rinv @ c.d
-        self.dx[c.fdofs] = new
-        c.sep_used = sep
+        new = self._solve(c, sep)
         return True, wf <= 0.0 or drift > wf or float(np.max(np.abs(new - old))) > wf
 
     def solve_pending(self) -> np.ndarray:
@@ -426,13 +421,12 @@ class BayesTree:
                     continue
                 done.add(cid)
                 c = cl[cid]
-                solved, spread = self._visit(c, False)
+                solved, spread = self._visit(c)
                 if solved:
                     out.append(c.frontal)
                 if spread:
                     stack.extend(c.children)
         self.pending.clear()
-        self.last_solved += len(out)
         return np.concatenate(out) if out else np.zeros(0, np.int64)
 
     def solve_path(self, v: int) -> np.ndarray:
@@ -455,7 +449,7 @@ class BayesTree:
         for k in range(top, -1, -1):
             cid = path[k]
             c = cl[cid]
-            solved, spread = self._visit(c, False)
+            solved, spread = self._visit(c)
             self.pending.discard(cid)
             if solved:
                 out.append(c.frontal)
@@ -528,16 +522,12 @@ class BayesTree:
         d = self.dim[v]
         return np.repeat(off - np.cumsum(d) + d, d) + np.arange(int(d.sum()))
 
-    def _solve(self, c: _Clique) -> None:
-        sep = self.dx[c.sdofs]
-        self.dx[c.fdofs] = c.Rinv @ (c.d - c.S @ sep) if sep.size else c.Rinv @ c.d
+    def _solve(self, c: _Clique, sep: np.ndarray | None = None) -> np.ndarray:
+        """Back-substitute one clique given its separator's offsets (read from :attr:`dx`
+        when not passed); returns its new frontal offsets."""
+        if sep is None:
+            sep = self.dx[c.sdofs]
+        new = c.Rinv @ (c.d - c.S @ sep) if sep.size else c.Rinv @ c.d
+        self.dx[c.fdofs] = new
         c.sep_used = sep
-
-    def solve_all(self) -> None:
-        """Back-substitute every clique from the roots down (the exact solution of the
-        current factorisation, whatever the wildfire threshold left behind)."""
-        stack = list(self.roots)
-        while stack:
-            c = self.cliques[stack.pop()]
-            self._solve(c)
-            stack.extend(c.children)
+        return new

@@ -772,13 +772,10 @@ class IncrementalSolver:
 
     def _tree_full(self) -> None:
         """Re-eliminate and solve everything now (the exact Gauss-Newton step)."""
-        tree = self._tree
-        if tree is None:
+        if self._tree is None:
             return
-        self._tree_stale = True
+        self._tree_stale = True  # every variable re-eliminated, every clique solved
         self._tree_update([], {})
-        tree.solve_all()
-        self._sync_offsets(np.arange(tree.nvar))
 
     def _validate(self, factors: Sequence[Factor], values: Values | None, remove: Sequence[int]) -> None:
         """Reject a bad update before anything changes (so a rejected update loses nothing)."""
