@@ -22,6 +22,10 @@ _SCRIPT = textwrap.dedent(
     import json, os
     os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
     import jax, jax.numpy as jnp, numpy as np
+    # the test session's compilation cache: the two-device tuning's programs on the first
+    # device are the one-device tuning's, which this process already compiled
+    jax.config.update("jax_compilation_cache_dir", os.environ["JAXSLAM_TEST_JIT_DIR"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     import jaxslam
     from jaxslam.core import Pose3Var
     from jaxslam.tune import GROUPS, DifferentiableSolver, Shards, TuneConfig, tune_graphs, tunnel_capture

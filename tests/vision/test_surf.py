@@ -341,7 +341,8 @@ def test_cli_writes_one_npz_per_image(tmp_path: Path, capsys: pytest.CaptureFixt
 def test_descriptors_in_parts_equal_one_call(monkeypatch: pytest.MonkeyPatch) -> None:
     """With concrete inputs the descriptors run in one part per core on a thread pool
     (every part-th keypoint, padded to one size); the result must be one call's to the bit,
-    oriented and upright, for a cap that does not divide into the parts."""
+    oriented and upright, for a cap that does not divide into the parts
+    (the parity tests' cap, so detection is already compiled)."""
     from jaxslam.vision import _features
 
     calls = []
@@ -350,14 +351,14 @@ def test_descriptors_in_parts_equal_one_call(monkeypatch: pytest.MonkeyPatch) ->
     monkeypatch.setattr(_features, "workers", lambda: 3)
     img = _gray(FRAME)
     for upright in (False, True):
-        one = surf(img, 100.0, max_keypoints=1001, upright=upright, parallel=False)
-        split = surf(img, 100.0, max_keypoints=1001, upright=upright)
+        one = surf(img, 100.0, max_keypoints=4096, upright=upright, parallel=False)
+        split = surf(img, 100.0, max_keypoints=4096, upright=upright)
         assert int(np.sum(np.asarray(one[2]))) > 500
         for a, b in zip(one, split):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert calls == [False, True]
     monkeypatch.setattr(_features, "workers", lambda: 1)  # one core: one call
-    surf(img, 100.0, max_keypoints=1001)
+    surf(img, 100.0, max_keypoints=4096)
     assert calls == [False, True]
 
 
