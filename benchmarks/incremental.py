@@ -18,7 +18,10 @@ and value objects is not timed (for either). Both final estimates are scored by 
 the whole graph (``graph.error``); the batch optimum is GTSAM's Levenberg-Marquardt on the
 whole graph started from iSAM2's final estimate.
 We also report jaxslam's cost after ``optimize()`` (full relinearisation), its relative gap
-to the batch optimum, and costs of both running estimates at checkpoints along the stream.
+to the batch optimum, costs of both running estimates at checkpoints along the stream, the
+variables each update re-eliminated (ours: ``UpdateResult.reeliminated``; iSAM2:
+``ISAM2Result.getVariablesReeliminated()``; the work done, apart from the speed of doing it)
+and how much of our time went into linearising (``UpdateResult.linearize_s``).
 
 JSON (``--json PATH``): a list with one object per file,
 ``{"file", "ours": S, "isam2": S, "batch_optimum_cost", ...}``, S = ``{"total_s", "p50_ms",
@@ -60,6 +63,11 @@ def resolve(name: str) -> str:
 
 def _slice(factor, idx):
     return jax.tree_util.tree_map(lambda leaf: leaf[idx] if np.ndim(leaf) >= 1 else leaf, factor)
+
+
+def _counts(a: list[int]) -> dict:
+    x = np.asarray(a, float)
+    return {"mean": float(x.mean()), "p50": float(np.percentile(x, 50)), "p95": float(np.percentile(x, 95))}
 
 
 def _stats(lat: list[float], final_cost: float) -> dict:
@@ -132,6 +140,7 @@ def run_ours(stream: Stream, cfg: IncrementalConfig, checkpoints: set[int]) -> t
     lat = []
     ck = {}
     full = 0
+    reelim, lin_s = [], 0.0
 
     def est_of(i):  # through the API (like iSAM2's calculateEstimate in run_isam2): brings it up to date
         return solver.value(vt, i)
@@ -144,9 +153,11 @@ def run_ours(stream: Stream, cfg: IncrementalConfig, checkpoints: set[int]) -> t
         _ = solver.value(vt, vid)
         lat.append(time.perf_counter() - t)
         full += res.full_solve
+        reelim.append(res.reeliminated)
+        lin_s += res.linearize_s
         if k in checkpoints:
             ck[k] = solver.estimate()
-    return {"latencies": lat, "full_solves": full}, solver, ck
+    return {"latencies": lat, "full_solves": full, "reeliminated": reelim, "linearize_s": lin_s}, solver, ck
 
 
 def run_isam2(stream: Stream, checkpoints: set[int]) -> tuple[dict, object, dict]:
@@ -158,6 +169,7 @@ def run_isam2(stream: Stream, checkpoints: set[int]) -> tuple[dict, object, dict
 
     lat = []
     ck = {}
+    reelim = []
     for k, (vid, facs, e, x0) in enumerate(stream.updates):
         graph, vals = to_gtsam(
             facs,
@@ -175,12 +187,13 @@ def run_isam2(stream: Stream, checkpoints: set[int]) -> tuple[dict, object, dict
             vals = gtsam.Values()
             vals.insert(vid, guess)
         t = time.perf_counter()
-        isam.update(graph, vals)
+        res = isam.update(graph, vals)
         calc(vid)
         lat.append(time.perf_counter() - t)
+        reelim.append(res.getVariablesReeliminated())
         if k in checkpoints:
             ck[k] = isam.calculateEstimate()
-    return {"latencies": lat}, isam, ck
+    return {"latencies": lat, "reeliminated": reelim}, isam, ck
 
 
 def prefix_error(stream: Stream, values_gt, k: int) -> float:
@@ -256,6 +269,11 @@ def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int) -> dict:
         "batch_lm_from": batch_costs,
         "guess": GUESS,
         "ours_full_solves": ours_raw["full_solves"],
+        # variables re-factorised per update (UpdateResult.reeliminated; ISAM2Result's
+        # variablesReeliminated): how much work each update did, apart from its speed
+        "reeliminated": {"ours": _counts(ours_raw["reeliminated"]), "isam2": _counts(isam_raw["reeliminated"])},
+        # of ours' total, the time spent linearising (UpdateResult.linearize_s)
+        "ours_linearize_s": ours_raw["linearize_s"],
         "ours_first_pass_s": first_pass_s,
         "ours_optimize": {"time_s": opt_s, "cost": ours_opt, "relative_gap": (ours_opt - batch_cost) / batch_cost},
         "checkpoints": ck_rows,
@@ -275,6 +293,12 @@ def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int) -> dict:
         f"  ratio ours/isam2: total {o['total_s'] / i['total_s']:.2f}  p95 {o['p95_ms'] / i['p95_ms']:.2f};  "
         f"batch optimum {batch_cost:.6g}; ours after optimize() {ours_opt:.10g} "
         f"(gap {out['ours_optimize']['relative_gap']:.1e}, {opt_s:.2f} s)"
+    )
+    ro, ri = out["reeliminated"]["ours"], out["reeliminated"]["isam2"]
+    print(
+        f"  variables re-eliminated per update, mean/p50/p95: ours {ro['mean']:.1f}/{ro['p50']:.0f}/{ro['p95']:.0f}"
+        f", isam2 {ri['mean']:.1f}/{ri['p50']:.0f}/{ri['p95']:.0f};  ours linearising "
+        f"{out['ours_linearize_s']:.2f} s of {o['total_s']:.2f} s"
     )
     worse = [c["update"] for c in ck_rows if c["ours"] > c["isam2"]]
     print(f"  checkpoints where ours > isam2: {worse or 'none'} of {len(ck_rows)}", flush=True)

@@ -147,7 +147,17 @@ class UpdateResult:
     relinearized: int
     """Number of variables relinearised in this update."""
     marginalized: int
+    """Number of variables marginalised into the fixed-lag prior in this update."""
     time_s: float
+    """Wall time of the update."""
+    reeliminated: int = 0
+    """Variables whose part of the linear system was factorised again in this update
+    (iSAM2's ``variablesReeliminated``): ``bayes_tree``, the re-eliminated top; ``window``,
+    the window's variables (every variable on a full solve); ``batch``, every variable."""
+    linearize_s: float = 0.0
+    """Of ``time_s``, the time spent linearising new and relinearised constraints (the
+    compiled factor kernels and their Gram blocks; in ``batch`` mode the Levenberg-Marquardt
+    iterations' own linearisations are not counted)."""
 
 
 # --- storage --------------------------------------------------------------------------------
@@ -478,6 +488,8 @@ class IncrementalSolver:
         self._tree = BayesTree(self.config.wildfire) if self.config.engine == "bayes_tree" else None
         self._tree_stale = False  # every linearisation changed: re-eliminate all at the next update
         self._nvar = 0
+        self._lin_s = 0.0  # linearisation time of the current update
+        self._reelim = 0  # variables re-factorised by the current update
 
     # --- variables and factors -------------------------------------------------------------
     def _store(self, vtype: type[Variable]) -> _Store:
@@ -575,9 +587,11 @@ class IncrementalSolver:
         idx = idx[g.alive[idx]]
         if idx.size == 0:
             return
+        t0 = time.perf_counter()
         J, g.r[idx], _ = self._linearize_rows(g, idx, "lin")
         g.J[idx] = J
         G, g.b[idx] = self._gram(J, g.r[idx])
+        self._lin_s += time.perf_counter() - t0
         B = self._blocks
         if B is not None:  # the blocks change by new - old (a new constraint's old G is 0)
             var = self._block_vars(g, idx)
@@ -607,6 +621,7 @@ class IncrementalSolver:
         """Add ``new_values`` (variables not seen before) and ``new_factors``, remove the
         factors with handles ``remove``, and update the estimate."""
         t0 = time.perf_counter()
+        self._lin_s, self._reelim = 0.0, 0
         cfg = self.config
         affected: dict[int, set[int]] = {}  # store -> rows
         dirty: dict[int, list[int]] = {}  # group -> constraints to relinearise
@@ -686,7 +701,7 @@ class IncrementalSolver:
             self.optimize()
             nmarg = self._marginalize() if cfg.lag is not None else 0
             self.updates += 1
-            return UpdateResult(handles, True, nrelin, nmarg, time.perf_counter() - t0)
+            return self._result(handles, True, nrelin, nmarg, t0, self._live_vars())
         if self._tree is not None:
             new_fac: dict[int, list[int]] = {}
             for gi, c in new_refs:
@@ -695,7 +710,7 @@ class IncrementalSolver:
             marked += [self._group_list[gi].vars[idx].ravel() for gi, idx in dirty_idx.items()]
             full = self._tree_update(marked + removed_vars, new_fac)
             self.updates += 1
-            return UpdateResult(handles, full, nrelin, 0, time.perf_counter() - t0)
+            return self._result(handles, full, nrelin, 0, t0, self._tree.last_reeliminated)
         loop_t0 = self._loop_window(new_refs)
         due = self._since_full + 1 >= cfg.full_solve_every
         full = due and self._full_solve_needed()  # a skipped one would have changed nothing
@@ -714,7 +729,13 @@ class IncrementalSolver:
         if nmarg:
             self._excess_bound = np.inf
         self.updates += 1
-        return UpdateResult(handles, full, nrelin, nmarg, time.perf_counter() - t0)
+        return self._result(handles, full, nrelin, nmarg, t0, self._reelim)
+
+    def _result(self, handles: list[int], full: bool, nrelin: int, nmarg: int, t0: float, reelim: int) -> UpdateResult:
+        return UpdateResult(handles, full, nrelin, nmarg, time.perf_counter() - t0, reelim, self._lin_s)
+
+    def _live_vars(self) -> int:
+        return sum(int(s.live[: s.n].sum()) for s in self._store_list)
 
     def _tree_update(self, marked: list[np.ndarray], new_fac: dict[int, list[int]]) -> bool:
         """The Bayes tree's step: re-eliminate above the ``marked`` variables (adding the
@@ -739,7 +760,7 @@ class IncrementalSolver:
                 "(add a prior on one variable of each connected component)"
             ) from err
         self._sync_offsets(changed)
-        return tree.last_reeliminated == sum(int(s.live[: s.n].sum()) for s in self._store_list)
+        return tree.last_reeliminated == self._live_vars()
 
     def _sync_offsets(self, vnums: np.ndarray) -> None:
         """Copy the Bayes tree's offsets of variables ``vnums`` into the stores and move
@@ -865,6 +886,7 @@ class IncrementalSolver:
         if system is None:
             return
         wmap, _, solve, grad, model = system
+        self._reelim = sum(int(np.count_nonzero(w >= 0)) for w in wmap)
         step = solve(-grad)
         decrease = max(0.0, -0.5 * float(grad @ step))  # the exact minimiser's: g^T H^-1 g / 2
         if t0 == 0:
@@ -1025,6 +1047,7 @@ class IncrementalSolver:
                 "(add a prior on one variable of each connected component)"
             ) from err
         step = solve(-grad)
+        self._reelim = self._live_vars()
         self._excess_bound = 0.0
         self._model_at_full = model - max(0.0, -0.5 * float(grad @ step))
         for st in self._store_list:

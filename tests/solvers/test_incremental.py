@@ -102,16 +102,20 @@ def _chain_problem(n: int, seed: int = 0):
     return P, odo
 
 
-def _chain_solver(P, odo, n, config=None):
+def _chain_solver(P, odo, n, config=None, results=None):
+    """An incremental solver fed the chain pose by pose (``results`` collects each update's
+    :class:`UpdateResult`)."""
     solver = IncrementalSolver(config)
+    results = [] if results is None else results
     est = P[0]
-    solver.update(
+    res = solver.update(
         [PriorFactor.create(Pose3Var(np.array([0])), P[0], Gaussian.isotropic(6, 1e-3))],
         Values.create({Pose3Var(np.array([0])): P[0][None]}),
     )
+    results.append(res)
     for i in range(1, n):
         est = np.asarray(SE3(est).compose(SE3(odo[i - 1])).params)
-        solver.update(
+        res = solver.update(
             [
                 BetweenFactor.create(
                     Pose3Var(np.array([i - 1])), Pose3Var(np.array([i])), odo[i - 1][None], Gaussian.isotropic(6, 0.05)
@@ -119,6 +123,7 @@ def _chain_solver(P, odo, n, config=None):
             ],
             Values.create({Pose3Var(np.array([i])): est[None]}),
         )
+        results.append(res)
     return solver
 
 
@@ -141,6 +146,38 @@ def test_late_loop_closure_propagates_to_old_variables(engine: str) -> None:
     err_before = np.linalg.norm(before[-1, 4:] - P[-1, 4:])
     err_after = np.linalg.norm(after[-1, 4:] - P[-1, 4:])
     assert err_after < err_before
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_update_reports_what_it_re_eliminated_and_its_linearisation_time(engine: str) -> None:
+    """``UpdateResult.reeliminated`` (iSAM2's ``variablesReeliminated``): an odometry step
+    re-factorises the window's variables (``window``) or a few at the tree's root
+    (``bayes_tree``), a loop closure back to the first pose the whole loop, and an update
+    with nothing new nothing in the tree; ``linearize_s`` is part of ``time_s``."""
+    n = 30
+    P, odo = _chain_problem(n)
+    cfg = IncrementalConfig(engine=engine)
+    results: list = []
+    solver = _chain_solver(P, odo, n, cfg, results)
+    steps = [r.reeliminated for r in results]
+    if engine == "window":
+        assert steps == [min(k, cfg.window) + 1 for k in range(n)]
+    else:
+        assert steps[0] == 1 and all(1 <= r <= solver._tree.max_frontal + 1 for r in steps)
+    z = np.asarray(SE3(P[-1]).inverse().compose(SE3(P[0])).params)
+    loop = BetweenFactor.create(
+        Pose3Var(np.array([n - 1])), Pose3Var(np.array([0])), z[None], Gaussian.isotropic(6, 1e-3)
+    )
+    res = solver.update([loop])
+    assert res.reeliminated == n and res.full_solve
+    assert 0.0 < res.linearize_s < res.time_s
+    res = solver.update([])
+    assert res.relinearized == 0 or engine == "window"
+    if engine == "bayes_tree":  # nothing new, nothing relinearised (not a check update)
+        assert res.reeliminated == 0 and res.linearize_s == 0.0
+    assert all(0.0 <= r.linearize_s <= r.time_s for r in results)
+    bat = _chain_solver(P[:5], odo[:4], 5, IncrementalConfig(mode="batch"))
+    assert bat.update([]).reeliminated == 5
 
 
 @pytest.mark.parametrize("engine", ENGINES)
