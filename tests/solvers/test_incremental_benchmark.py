@@ -24,6 +24,9 @@ def test_benchmark_writes_the_issue_json(tmp_path, monkeypatch, capsys, engine: 
     spec.loader.exec_module(bench)
     out = tmp_path / "inc.json"
     argv = ["incremental.py", str(DATA / "tinyGrid3D.g2o"), "--engine", engine, "--json", str(out)]
+    spread = engine == "window"  # once is enough
+    if spread:
+        argv.append("--isam2-spread")
     monkeypatch.setattr("sys.argv", argv)
     bench.main()
     assert "variables re-eliminated per update" in capsys.readouterr().out
@@ -40,3 +43,28 @@ def test_benchmark_writes_the_issue_json(tmp_path, monkeypatch, capsys, engine: 
     assert abs(res["ours_optimize"]["relative_gap"]) <= 1e-6
     assert 0.0 <= res["ours_linearize_s"] <= res["ours"]["total_s"]
     assert len(res["checkpoints"]) == 9 and res["config"]["engine"] == engine
+    if spread:
+        sp = res["isam2_spread"]
+        assert [v["params"] for v in sp["variants"]] == bench.SPREAD
+        costs = [v["final_cost"] for v in sp["variants"]]
+        assert sp["min_cost"] == min(costs) and sp["max_cost"] == max(costs)
+        assert all(c >= res["batch_optimum_cost"] * (1.0 - 1e-9) for c in costs)
+        assert sp["worse_than_ours"] == sum(c > res["ours"]["final_cost"] for c in costs)
+    else:
+        assert "isam2_spread" not in res
+
+
+def test_isam2_params_defaults_are_gtsams(monkeypatch) -> None:
+    """The spread's parameter builder at its defaults is ``gtsam.ISAM2Params()``: the same
+    stream ends at the same estimate."""
+    spec = importlib.util.spec_from_file_location("bench_incremental", BENCH)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    stream = bench.Stream(str(DATA / "tinyGrid3D.g2o"))
+    _, a, _ = bench.run_isam2(stream, set())
+    _, b, _ = bench.run_isam2(stream, set(), bench.isam2_params())
+    _, c, _ = bench.run_isam2(stream, set(), bench.isam2_params(threshold=1e-9, skip=1))
+    ca, cb, cc = (float(stream.gt_graph.error(x.calculateEstimate())) for x in (a, b, c))
+    assert ca == cb
+    assert cc != ca  # the settings do reach iSAM2
