@@ -152,19 +152,28 @@ def test_mixed_tangent_sizes_and_removal_stay_exact() -> None:
     np.testing.assert_allclose(_offsets(solver), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
-def test_running_estimate_is_gtsam_isam2s() -> None:
-    """Relinearising every variable that moved and solving exactly (threshold 0, wildfire 0),
-    both run one Gauss-Newton step per update: the estimates agree after every update."""
+@pytest.mark.parametrize(
+    ("cfg", "threshold"),
+    [
+        (IncrementalConfig(engine="bayes_tree", wildfire=0.0, relinearize_threshold=0.0, relinearize_skip=1), 0.0),
+        # the window engine solving the whole system at every update, with fluid
+        # relinearisation: the same variables cross the threshold at the same updates
+        (IncrementalConfig(engine="window", full_solve_every=1, relinearize_threshold=0.05, relinearize_skip=1), 0.05),
+    ],
+    ids=["bayes_tree", "window_full_every_update"],
+)
+def test_running_estimate_is_gtsam_isam2s(cfg: IncrementalConfig, threshold: float) -> None:
+    """Relinearising the variables that moved by more than the threshold and solving exactly
+    (wildfire 0), both run one Gauss-Newton step per update: the estimates agree after every
+    update."""
     gtsam = pytest.importorskip("gtsam")
     from jaxslam.interop.gtsam import to_gtsam
 
     graph = read_g2o(DATA / "smallGrid3D.g2o")
     vt = graph.var_type
-    ours = IncrementalSolver(
-        IncrementalConfig(engine="bayes_tree", wildfire=0.0, relinearize_threshold=0.0, relinearize_skip=1)
-    )
+    ours = IncrementalSolver(cfg)
     p = gtsam.ISAM2Params()
-    p.setRelinearizeThreshold(0.0)
+    p.setRelinearizeThreshold(threshold)
     p.relinearizeSkip = 1
     gn = gtsam.ISAM2GaussNewtonParams()
     gn.setWildfireThreshold(0.0)
@@ -172,6 +181,7 @@ def test_running_estimate_is_gtsam_isam2s() -> None:
     isam = gtsam.ISAM2(p)
     params = np.asarray(graph.values.params(vt))
     worst = 0.0
+    relin = 0
     for k, (vid, edges) in enumerate(graph.incremental_order()[:40]):
         x0 = params[np.searchsorted(graph.vertex_ids, vid)]
         vals = Values({vt: np.asarray([vid])}, {vt: jnp.asarray(x0[None])})
@@ -179,7 +189,7 @@ def test_running_estimate_is_gtsam_isam2s() -> None:
             facs = [PriorFactor.create(vt(np.asarray([vid])), params[0], Gaussian.isotropic(6, 1e-6))]
         else:
             facs = [_slice(graph.factors[0], edges)]
-        ours.update(facs, vals)
+        relin += ours.update(facs, vals).relinearized
         g, v = to_gtsam(facs, vals)
         isam.update(g, v)
         est = isam.calculateEstimate()
@@ -189,6 +199,7 @@ def test_running_estimate_is_gtsam_isam2s() -> None:
             d = np.asarray(SE3(jnp.asarray(x)).local(SE3(jnp.asarray(_gtsam_params(ref)))))
             worst = max(worst, float(np.abs(d).max()))
     assert worst < 1e-7, worst
+    assert relin > 0  # the comparison covers relinearisation
 
 
 def _gtsam_params(pose) -> np.ndarray:
