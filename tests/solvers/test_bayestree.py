@@ -153,16 +153,22 @@ def test_mixed_tangent_sizes_and_removal_stay_exact() -> None:
 
 
 @pytest.mark.parametrize(
-    ("cfg", "threshold"),
+    ("cfg", "threshold", "skip"),
     [
-        (IncrementalConfig(engine="bayes_tree", wildfire=0.0, relinearize_threshold=0.0, relinearize_skip=1), 0.0),
+        (IncrementalConfig(engine="bayes_tree", wildfire=0.0, relinearize_threshold=0.0, relinearize_skip=1), 0.0, 1),
+        # iSAM2's default relinearisation (threshold 0.1, checked at every 10th update)
+        (IncrementalConfig(engine="bayes_tree", wildfire=0.0), 0.1, 10),
         # the window engine solving the whole system at every update, with fluid
         # relinearisation: the same variables cross the threshold at the same updates
-        (IncrementalConfig(engine="window", full_solve_every=1, relinearize_threshold=0.05, relinearize_skip=1), 0.05),
+        (
+            IncrementalConfig(engine="window", full_solve_every=1, relinearize_threshold=0.05, relinearize_skip=1),
+            0.05,
+            1,
+        ),
     ],
-    ids=["bayes_tree", "window_full_every_update"],
+    ids=["bayes_tree", "bayes_tree_isam2_defaults", "window_full_every_update"],
 )
-def test_running_estimate_is_gtsam_isam2s(cfg: IncrementalConfig, threshold: float) -> None:
+def test_running_estimate_is_gtsam_isam2s(cfg: IncrementalConfig, threshold: float, skip: int) -> None:
     """Relinearising the variables that moved by more than the threshold and solving exactly
     (wildfire 0), both run one Gauss-Newton step per update: the estimates agree after every
     update."""
@@ -174,7 +180,7 @@ def test_running_estimate_is_gtsam_isam2s(cfg: IncrementalConfig, threshold: flo
     ours = IncrementalSolver(cfg)
     p = gtsam.ISAM2Params()
     p.setRelinearizeThreshold(threshold)
-    p.relinearizeSkip = 1
+    p.relinearizeSkip = skip
     gn = gtsam.ISAM2GaussNewtonParams()
     gn.setWildfireThreshold(0.0)
     p.setOptimizationParams(gn)
