@@ -248,7 +248,7 @@ def isam2_spread(stream: Stream, ours_cost: float) -> dict:
         raw, isam, _ = run_isam2(stream, set(), isam2_params(**kw))
         cost = float(stream.gt_graph.error(isam.calculateEstimate()))
         rows.append({"params": kw, "final_cost": cost, "total_s": float(np.sum(raw["latencies"]))})
-        print(f"    isam2 {kw}: final cost {cost:.6g}", flush=True)
+        print(f"    isam2 {kw}: final cost {cost:.9g}", flush=True)
     costs = [r["final_cost"] for r in rows]
     return {
         "variants": rows,
@@ -354,8 +354,8 @@ def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int, spread: bo
     if spread:
         sp_ = out["isam2_spread"]
         print(
-            f"  iSAM2's final cost over {len(SPREAD)} neighbouring settings: {sp_['min_cost']:.6g} .. "
-            f"{sp_['max_cost']:.6g} (default {i['final_cost']:.6g}; {sp_['worse_than_ours']} end above ours)",
+            f"  iSAM2's final cost over {len(SPREAD)} neighbouring settings: {sp_['min_cost']:.9g} .. "
+            f"{sp_['max_cost']:.9g} (default {i['final_cost']:.9g}; {sp_['worse_than_ours']} end above ours)",
             flush=True,
         )
     return out
