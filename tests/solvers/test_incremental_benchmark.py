@@ -16,12 +16,17 @@ BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "incremental.py"
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "posegraph"
 
 
-@pytest.mark.parametrize("engine", ["window", "bayes_tree"])
-def test_benchmark_writes_the_issue_json(tmp_path, monkeypatch, capsys, engine: str) -> None:
+def _load_bench():
     spec = importlib.util.spec_from_file_location("bench_incremental", BENCH)
     assert spec is not None and spec.loader is not None
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
+    return bench
+
+
+@pytest.mark.parametrize("engine", ["window", "bayes_tree"])
+def test_benchmark_writes_the_issue_json(tmp_path, monkeypatch, capsys, engine: str) -> None:
+    bench = _load_bench()
     out = tmp_path / "inc.json"
     argv = ["incremental.py", str(DATA / "tinyGrid3D.g2o"), "--engine", engine, "--json", str(out)]
     spread = engine == "window"  # once is enough
@@ -54,13 +59,10 @@ def test_benchmark_writes_the_issue_json(tmp_path, monkeypatch, capsys, engine: 
         assert "isam2_spread" not in res
 
 
-def test_isam2_params_defaults_are_gtsams(monkeypatch) -> None:
+def test_isam2_params_defaults_are_gtsams() -> None:
     """The spread's parameter builder at its defaults is ``gtsam.ISAM2Params()``: the same
     stream ends at the same estimate."""
-    spec = importlib.util.spec_from_file_location("bench_incremental", BENCH)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _load_bench()
     stream = bench.Stream(str(DATA / "tinyGrid3D.g2o"))
     _, a, _ = bench.run_isam2(stream, set())
     _, b, _ = bench.run_isam2(stream, set(), bench.isam2_params())
