@@ -16,17 +16,19 @@ relinearised constraints, removed constraints, new variables):
 
 1. the cliques holding them and all their ancestors up to the root are removed (the
    "top"); their children that stay are *orphans*, whose cached factors summarise them;
-2. the top's variables are ordered again: AMD (CHOLMOD, when installed, for tops of 16
-   variables or more) on the top's own graph, with the new variables and those of new
-   constraints last, so the next update's new odometry edge touches the root only (GTSAM's
-   constrained ordering);
+2. the top's variables are ordered again on the top's own graph: exact minimum degree for
+   tops of up to 256 variables, AMD (CHOLMOD, when installed) above, with the new
+   variables and those of new constraints last, so the next update's new odometry edge
+   touches the root only (GTSAM's constrained ordering);
 3. symbolic elimination (the elimination tree; a variable joins its parent's clique when
    that adds at most ``relax`` zero blocks to its row and the clique has fewer than
    ``max_frontal`` frontal variables: relaxed supernodes, fewer and larger dense blocks)
-   and numeric elimination, clique by clique from the leaves: every constraint's cached
-   Gram block lands in its clique's frontal matrix in one scatter for the whole top, each
-   clique adds its children's cached factors (the orphans included) and runs a small dense
-   Cholesky;
+   and numeric elimination, clique by clique from the leaves: each clique gathers the
+   cached Gram blocks of the constraints it eliminates and its children's cached factors
+   (the orphans included) and runs a small dense Cholesky. The ordering, both eliminations
+   and the back-substitution of the new cliques are compiled (:mod:`._treekern`, numba):
+   a top is a few dozen variables in about ten cliques, where numpy calls' overhead was
+   most of the time;
 4. back-substitution of the new cliques from the root down. The orphans' subtrees are
    back-substituted lazily (GTSAM does the same): :meth:`solve_pending` when every offset
    is needed (the solver's estimate, its relinearisation check), descending only where a
@@ -48,8 +50,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
+
+from . import _treekern
 
 try:  # pragma: no cover - import guard
     from sksparse.cholmod import analyze as _cholmod_analyze
@@ -58,7 +61,8 @@ try:  # pragma: no cover - import guard
 except ImportError:  # pragma: no cover
     _HAVE_CHOLMOD = False
 
-_AMD_MIN = 16  # tops with fewer variables keep their natural (chronological) order (AMD costs ~0.3 ms)
+_EMPTY1, _EMPTY2 = np.zeros(0), np.zeros((0, 0))
+_MD_MAX = 256  # tops up to this size are ordered by the compiled minimum degree; larger by AMD
 
 
 class NotPositiveDefinite(Exception):
@@ -82,20 +86,26 @@ class _Clique:
         "sep_used",
     )
 
-    def __init__(self, frontal: np.ndarray, sep: np.ndarray):
+    def __init__(self, frontal: np.ndarray, sep: np.ndarray, fdofs: np.ndarray, sdofs: np.ndarray, parent: int):
         self.frontal = frontal  # variable numbers, in elimination order
         self.sep = sep  # variable numbers (all eliminated later, in ancestors)
-        self.fdofs = np.zeros(0, np.int64)  # permanent dofs of the frontal / separator variables
-        self.sdofs = np.zeros(0, np.int64)
-        self.parent = -1
+        self.fdofs = fdofs  # permanent dofs of the frontal / separator variables
+        self.sdofs = sdofs
+        self.parent = parent
         self.children: list[int] = []
         self.fac: list[tuple[int, np.ndarray]] = []  # (group, constraint indices) it eliminates
-        self.Rinv = np.zeros((0, 0))
-        self.S = np.zeros((0, 0))
-        self.d = np.zeros(0)
-        self.Ac = np.zeros((0, 0))
-        self.bc = np.zeros(0)
-        self.sep_used = np.zeros(0)  # the separator's offsets when it was last solved
+        # the conditional R delta_F + S delta_S = d (kept as R^-1), the cached factor
+        # (Ac, bc) on the separator and the separator's offsets when it was last solved:
+        # set by the numeric phase
+        self.Rinv = self.S = self.Ac = _EMPTY2
+        self.d = self.bc = self.sep_used = _EMPTY1
+
+
+def _offsets(sizes: np.ndarray) -> np.ndarray:
+    """Start offsets of runs of ``sizes``, with the total at the end."""
+    out = np.zeros(len(sizes) + 1, np.int64)
+    np.cumsum(sizes, out=out[1:])
+    return out
 
 
 class BayesTree:
@@ -114,7 +124,6 @@ class BayesTree:
         self.dof = np.zeros(16, np.int64)
         self.clique_of = np.full(16, -1, np.int64)
         self._loc = np.zeros(16, np.int64)  # scratch: a top variable's local index
-        self._lo2 = np.zeros(16, np.int64)  # scratch: a variable's dof offset in a frontal matrix
         self._bs = 0  # the tangent size when every variable has the same (else 0)
         self._ar = np.zeros(0, np.int64)
         self.dx = np.zeros(64)  # offsets (delta) by permanent dof
@@ -218,72 +227,23 @@ class BayesTree:
                 last[loc[groups[gi].vars[np.asarray(idx, np.int64)]].ravel()] = True
         con_loc = [(gi, idx, loc[groups[gi].vars[idx]]) for gi, idx in facs]
         orph_loc = [loc[cl[o].sep] for o in orphans]
-        order = self._order(m, top, con_loc, orph_loc, last)
+        # the top's graph as hyperedges (each constraint's variables, each orphan's separator)
+        h_vars = np.concatenate([np.zeros(0, np.int64), *(L.ravel() for _, _, L in con_loc), *orph_loc])
+        h_len = [np.full(len(L), L.shape[1], np.int64) for _, _, L in con_loc]
+        h_ptr = _offsets(np.concatenate([np.zeros(0, np.int64), *h_len, [len(L) for L in orph_loc]]))
+        order = self._order(m, top, h_ptr, h_vars, last)
         pos = np.empty(m, np.int64)
         pos[order] = np.arange(m)
-        # 3a. symbolic: the elimination tree (struct = later neighbours after fill)
-        struct: list[set[int]] = [set() for _ in range(m)]
-        for _, _, L in con_loc:
-            if L.shape[1] < 2:
-                continue
-            P = pos[L]
-            lo = P.min(axis=1)
-            for k in range(P.shape[1]):
-                for a, b in zip(lo.tolist(), P[:, k].tolist()):
-                    if b != a:
-                        struct[a].add(b)
-        for L in orph_loc:
-            if len(L) > 1:
-                P = pos[L]
-                a = int(P.min())
-                struct[a].update(P.tolist())
-        parent = np.full(m, -1, np.int64)
-        for j in range(m):
-            s = struct[j]
-            s.discard(j)
-            if s:
-                p = min(s)
-                parent[j] = p
-                struct[p] |= s
-        # fundamental supernodes: j joins its parent's clique when its structure is the
-        # parent's plus the parent (one child per parent)
-        parent_l = parent.tolist()
-        slen = [len(st) for st in struct]
-        group = [0] * m
-        gsize: list[int] = []
-        ngroup = 0
-        relax, cap = self.relax, self.max_frontal
-        for j in range(m - 1, -1, -1):
-            p = parent_l[j]
-            if p >= 0 and slen[p] + 1 - slen[j] <= relax and gsize[group[p]] < cap:
-                group[j] = group[p]
-                gsize[group[p]] += 1
-            else:
-                group[j] = ngroup
-                gsize.append(1)
-                ngroup += 1
+        # 3a. symbolic (compiled): the elimination tree and its relaxed supernodes
+        lvp, nfr, cnt, group = _treekern.symbolic(m, h_ptr, h_vars, pos, self.relax, self.max_frontal)
         # new cliques, leaves first: clique i has id base + i, so a parent's id is above its
         # children's (here and across updates: an orphan's new parent is newer) and sorting
         # by id orders cliques from the roots down
-        members: list[list[int]] = [[] for _ in range(ngroup)]
-        for j in range(m):
-            members[ngroup - 1 - group[j]].append(j)
+        ngroup = len(nfr)
         base = self._next
         self._next += ngroup
-        cid_of_pos = base + ngroup - 1 - np.asarray(group, np.int64)
+        cid_of_pos = base + ngroup - 1 - group
         # every clique's variables (frontal, then separator by position) side by side
-        lv_pos: list[int] = []
-        nfr_l: list[int] = []
-        cnt_l: list[int] = []
-        for fr in members:
-            sep_pos = sorted(struct[fr[-1]])
-            lv_pos.extend(fr)
-            lv_pos.extend(sep_pos)
-            nfr_l.append(len(fr))
-            cnt_l.append(len(fr) + len(sep_pos))
-        lvp = np.asarray(lv_pos, np.int64)
-        nfr = np.asarray(nfr_l, np.int64)
-        cnt = np.asarray(cnt_l, np.int64)
         seg = np.zeros(ngroup + 1, np.int64)
         np.cumsum(cnt, out=seg[1:])
         entry_cl = np.repeat(np.arange(ngroup), cnt)
@@ -301,13 +261,11 @@ class BayesTree:
         has_sep = cnt > nfr
         parent_id = np.where(has_sep, cid_of_pos[lvp[np.minimum(seg[:-1] + nfr, len(lvp) - 1)]], -1)
         new: list[_Clique] = []
-        ss, nl, ds, nfl, par = seg.tolist(), nfr_l, dseg.tolist(), nfs.tolist(), parent_id.tolist()
+        ss, nl, ds, nfl, par = seg.tolist(), nfr.tolist(), dseg.tolist(), nfs.tolist(), parent_id.tolist()
         for i in range(ngroup):
-            a0, a1, a2 = ss[i], ss[i] + nl[i], ss[i + 1]
-            c = _Clique(v_all[a0:a1], v_all[a1:a2])
-            c.fdofs = dofs_all[ds[i] : ds[i] + nfl[i]]
-            c.sdofs = dofs_all[ds[i] + nfl[i] : ds[i + 1]]
-            c.parent = par[i]
+            a0, a1 = ss[i], ss[i] + nl[i]
+            f0, f1 = ds[i], ds[i] + nfl[i]
+            c = _Clique(v_all[a0:a1], v_all[a1 : ss[i + 1]], dofs_all[f0:f1], dofs_all[f1 : ds[i + 1]], par[i])
             cl[base + i] = c
             new.append(c)
             if par[i] < 0:
@@ -315,21 +273,15 @@ class BayesTree:
         for i, p in enumerate(par):
             if p >= 0:
                 cl[p].children.append(base + i)
-        for o, L in zip(orphans, orph_loc):
+        o_par = np.zeros(len(orphans), np.int64)
+        for k, (o, L) in enumerate(zip(orphans, orph_loc)):
             p = int(cid_of_pos[int(pos[L].min())])
             cl[o].parent = p
             cl[p].children.append(o)
-        # 3b. numeric. Every constraint's Gram block and gradient go into its clique's frontal
-        # matrix in one scatter (all cliques' matrices side by side in one buffer).
-        boff = np.zeros(ngroup + 1, np.int64)
-        np.cumsum(sizes * sizes, out=boff[1:])
-        roff = np.zeros(ngroup + 1, np.int64)
-        np.cumsum(sizes, out=roff[1:])
-        keys = entry_cl * m + lv_all
-        korder = np.argsort(keys)
-        skeys = keys[korder]
-        soff = off_all[korder]
-        fi_l, fv_l, ri_l, rv_l = [], [], [], []
+            o_par[k] = p - base
+        # 3b. numeric (compiled). Each constraint goes to the clique that eliminates the first
+        # of its variables: its Gram block and gradient into that clique's frontal matrix.
+        own_l, nv_l, var_l, G_l, b_l = [], [], [], [], []
         for gi, idx, L in con_loc:
             g = groups[gi]
             owner = cid_of_pos[pos[L].min(axis=1)]
@@ -337,50 +289,48 @@ class BayesTree:
             u, start = np.unique(owner[srt], return_index=True)
             for cid, chunk in zip(u.tolist(), np.split(idx[srt], start[1:])):
                 cl[cid].fac.append((gi, chunk))
-            oi = owner - base
-            o = soff[np.searchsorted(skeys, oi[:, None] * m + L)]  # (mc, k) local dof offsets
-            ix = np.concatenate([o[:, k : k + 1] + np.arange(t) for k, t in enumerate(g.tds)], axis=1)
-            nn = sizes[oi][:, None, None]
-            fi_l.append((boff[oi][:, None, None] + ix[:, :, None] * nn + ix[:, None, :]).ravel())
-            fv_l.append(g.G[idx].ravel())
-            ri_l.append((roff[oi][:, None] + ix).ravel())
-            rv_l.append(-g.b[idx].ravel())
-        big: np.ndarray
-        rbig: np.ndarray
-        if fi_l:
-            big = np.bincount(np.concatenate(fi_l), np.concatenate(fv_l), minlength=int(boff[-1]))
-            rbig = np.bincount(np.concatenate(ri_l), np.concatenate(rv_l), minlength=int(roff[-1]))
-        else:
-            big, rbig = np.zeros(int(boff[-1])), np.zeros(int(roff[-1]))
-        lo2 = self._lo2 if len(self._lo2) >= m else np.zeros(max(m, 2 * len(self._lo2)), np.int64)
-        self._lo2 = lo2
-        for i, c in enumerate(new):  # leaves first: children's cached factors are ready
-            n = int(sizes[i])
-            F = big[boff[i] : boff[i + 1]].reshape(n, n)
-            rhs = rbig[roff[i] : roff[i + 1]]
-            if c.children:
-                lo2[lv_all[ss[i] : ss[i + 1]]] = off_all[ss[i] : ss[i + 1]]
-                for ch in c.children:
-                    kid = cl[ch]
-                    o = lo2[loc[kid.sep]]
-                    a0 = int(o[0])
-                    a1 = a0 + len(kid.bc)
-                    # one contiguous run in the same order (an orphan's separator keeps the
-                    # order of its own elimination, which the new one may have changed)
-                    if int(o[-1]) + int(self.dim[kid.sep[-1]]) - a0 == len(kid.bc) and (
-                        len(o) < 2 or np.all(o[1:] > o[:-1])
-                    ):
-                        F[a0:a1, a0:a1] += kid.Ac
-                        rhs[a0:a1] += kid.bc
-                    else:
-                        ix = self._expand(o, kid.sep)
-                        F.reshape(-1)[(ix[:, None] * n + ix).ravel()] += kid.Ac.ravel()
-                        rhs[ix] += kid.bc
-            self._eliminate(c, F, rhs, int(nfs[i]))
-        # 4. back-substitution of the new cliques from the root down; the orphans' subtrees
-        # wait until their offsets are asked for (solve_pending, solve_path)
-        for c in reversed(new):
-            self._solve(c)
+            own_l.append(owner - base)
+            nv_l.append(np.full(len(idx), L.shape[1], np.int64))
+            var_l.append(L.ravel())
+            G_l.append(g.G[idx].ravel())
+            b_l.append(g.b[idx].ravel())
+        c_own, c_nv, c_vars = (np.concatenate(x) if x else np.zeros(0, np.int64) for x in (own_l, nv_l, var_l))
+        c_G, c_b = (np.concatenate(x) if x else np.zeros(0) for x in (G_l, b_l))
+        # each clique adds its children's cached factors (new cliques' and the orphans'),
+        # runs a small dense Cholesky, and the new cliques are back-substituted from the
+        # root down (compiled); the orphans' subtrees wait until their offsets are asked
+        # for (solve_pending, solve_path)
+        nss = sizes - nfs
+        rptr, sptr, dptr, aptr, bptr = (_offsets(x) for x in (nfs * nfs, nfs * nss, nfs, nss * nss, nss))
+        pools = [np.empty(int(p[-1])) for p in (rptr, sptr, dptr, aptr, bptr, bptr)]
+        oc = [cl[o] for o in orphans]
+        o_ptr = _offsets(np.asarray([len(L) for L in orph_loc], np.int64))
+        o_aptr = _offsets(np.asarray([c.Ac.size for c in oc], np.int64))
+        o_sep, o_A, o_b = (
+            (np.concatenate(orph_loc), np.concatenate([c.Ac.ravel() for c in oc]), np.concatenate([c.bc for c in oc]))
+            if oc
+            else (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+        )
+        parent_rel = np.where(parent_id >= 0, parent_id - base, -1)
+        bad = _treekern.numeric(
+            seg, nfr, lv_all, off_all, self.dim[top], sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
+            parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b, dofs_all, dseg, self.dx,
+            rptr, pools[0], sptr, pools[1], dptr, pools[2], aptr, pools[3], bptr, pools[4], pools[5],
+        )  # fmt: skip
+        if bad >= 0:
+            bad_vars = new[bad].frontal.tolist()
+            raise NotPositiveDefinite(f"frontal block of variables {bad_vars} is not positive definite")
+        Rp, Sp, dp, Ap, bp, up = pools
+        rl, sl, dl, al, bl = rptr.tolist(), sptr.tolist(), dptr.tolist(), aptr.tolist(), bptr.tolist()
+        nsl = nss.tolist()
+        for i, c in enumerate(new):
+            nf, ns = nfl[i], nsl[i]
+            c.Rinv = Rp[rl[i] : rl[i + 1]].reshape(nf, nf)
+            c.S = Sp[sl[i] : sl[i + 1]].reshape(nf, ns)
+            c.d = dp[dl[i] : dl[i + 1]]
+            c.Ac = Ap[al[i] : al[i + 1]].reshape(ns, ns)
+            c.bc = bp[bl[i] : bl[i + 1]]
+            c.sep_used = up[bl[i] : bl[i + 1]]
         self.pending.update(orphans)
         return top
 
@@ -458,61 +408,23 @@ class BayesTree:
                 self.pending.update(ch for ch in c.children if ch != nxt)
         return np.concatenate(out) if out else np.zeros(0, np.int64)
 
-    def _order(
-        self,
-        m: int,
-        top: np.ndarray,
-        con_loc: list[tuple[int, np.ndarray, np.ndarray]],
-        orph_loc: list[np.ndarray],
-        last: np.ndarray,
-    ) -> np.ndarray:
-        """Elimination order of the top's variables (local indices): AMD on their graph when
-        CHOLMOD is installed and the top is not tiny, else variable-number order; the
-        ``last`` ones at the end either way."""
-        if _HAVE_CHOLMOD and m >= _AMD_MIN:
-            ri, ci = [np.arange(m)], [np.arange(m)]
-            for _, _, L in con_loc:
-                for a in range(L.shape[1]):
-                    for b in range(L.shape[1]):
-                        if a != b:
-                            ri.append(L[:, a])
-                            ci.append(L[:, b])
-            for L in orph_loc:
-                if len(L) > 1:
-                    ri.append(np.repeat(L, len(L)))
-                    ci.append(np.tile(L, len(L)))
-            rows, cols = np.concatenate(ri), np.concatenate(ci)
-            A = sp.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, m))
-            A.sum_duplicates()
-            A.data[:] = 0.0
-            A.setdiag(1.0)
-            perm = np.asarray(_cholmod_analyze(A, mode="simplicial", ordering_method="amd").P(), np.int64)
+    def _order(self, m: int, top: np.ndarray, h_ptr: np.ndarray, h_vars: np.ndarray, last: np.ndarray) -> np.ndarray:
+        """Elimination order of the top's variables (local indices), the ``last`` ones at the
+        end: exact minimum degree (compiled) for tops up to ``_MD_MAX`` variables, AMD
+        (CHOLMOD) above when installed, else variable-number order."""
+        if m <= _MD_MAX:
+            return _treekern.min_degree(m, h_ptr, h_vars, last)
+        if _HAVE_CHOLMOD:
+            nh = np.diff(h_ptr)
+            k = np.repeat(np.arange(len(nh)), nh)  # hyperedge of each entry
+            A = sp.csc_matrix((np.ones(len(h_vars)), (k, h_vars)), shape=(len(nh), m))
+            G = (A.T @ A).tocsc()  # the top's graph: variables sharing a hyperedge
+            G.data[:] = 0.0
+            G.setdiag(1.0)
+            perm = np.asarray(_cholmod_analyze(G, mode="simplicial", ordering_method="amd").P(), np.int64)
         else:
             perm = np.argsort(top, kind="stable")
         return np.concatenate([perm[~last[perm]], perm[last[perm]]])
-
-    def _eliminate(self, c: _Clique, F: np.ndarray, rhs: np.ndarray, nf: int) -> None:
-        """Eliminate the clique's frontal variables from its assembled frontal matrix ``F``
-        (frontal then separator dofs) and right-hand side: the conditional and the cached
-        factor on the separator."""
-        L, info = lapack.dpotrf(F[:nf, :nf], lower=1, clean=1)
-        if info != 0:
-            Aff = F[:nf, :nf].copy()
-            dz = np.diag(Aff) == 0.0
-            if np.any(dz):  # variables without any information stay put
-                Aff[dz, dz] = 1.0
-                L, info = lapack.dpotrf(Aff, lower=1, clean=1)
-            if info != 0:
-                raise NotPositiveDefinite(f"frontal block of variables {c.frontal.tolist()} is not positive definite")
-        Linv, _ = lapack.dtrtri(L, lower=1)
-        c.Rinv = Linv.T
-        c.d = Linv @ rhs[:nf]
-        if len(F) > nf:
-            c.S = Linv @ F[:nf, nf:]
-            c.Ac = F[nf:, nf:] - c.S.T @ c.S
-            c.bc = rhs[nf:] - c.S.T @ c.d
-        else:
-            c.S = np.zeros((nf, 0))
 
     def _expand(self, off: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Dof indices of variables ``v`` whose first dofs are ``off`` (their tangent sizes

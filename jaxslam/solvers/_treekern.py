@@ -1,0 +1,378 @@
+"""Compiled (numba) kernels of the Bayes tree's re-elimination (:mod:`._bayestree`).
+
+An update of the tree re-eliminates a few dozen variables in about ten small cliques. Written
+as numpy calls, each clique costs some twenty calls of a few microseconds of overhead each,
+which made the Python bookkeeping, not the arithmetic, most of an update's time. These two
+kernels run the symbolic phase (elimination tree, relaxed supernodes) and the numeric phase
+(assembly of children's cached factors, dense Cholesky of each clique, back-substitution of
+the new cliques) in compiled loops; the tree's state stays in the Python cliques.
+
+Written here, not taken from a library: no package offers partial re-elimination of a sparse
+Cholesky factor. The dense products go to BLAS through numba's ``np.dot``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, nogil=True)
+
+
+@_jit
+def min_degree(m: int, h_ptr: np.ndarray, h_vars: np.ndarray, last: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """Minimum-degree elimination order of ``m`` variables whose graph joins every pair
+    within each hyperedge ``h_vars[h_ptr[k]:h_ptr[k+1]]`` (a constraint's variables, a
+    cached factor's separator), on the explicit elimination graph; the variables with
+    ``last`` set come after all others (GTSAM's constrained ordering), and ties go to the
+    lower index. Exact minimum degree: O(m^2) plus the fill, for tops of a few hundred
+    variables."""
+    adj = np.zeros((m, m), np.bool_)
+    for k in range(len(h_ptr) - 1):
+        for a in range(h_ptr[k], h_ptr[k + 1]):
+            for b in range(h_ptr[k], h_ptr[k + 1]):
+                adj[h_vars[a], h_vars[b]] = True
+    deg = np.zeros(m, np.int64)
+    for v in range(m):
+        adj[v, v] = False
+        for u in range(m):
+            if adj[v, u]:
+                deg[v] += 1
+    done = np.zeros(m, np.bool_)
+    perm = np.empty(m, np.int64)
+    nb = np.empty(m, np.int64)
+    nlast = 0
+    for v in range(m):
+        if last[v]:
+            nlast += 1
+    for k in range(m):
+        phase_last = k >= m - nlast
+        best = -1
+        for v in range(m):
+            if not done[v] and last[v] == phase_last and (best < 0 or deg[v] < deg[best]):
+                best = v
+        v = best
+        perm[k] = v
+        done[v] = True
+        n = 0
+        for u in range(m):
+            if adj[v, u]:
+                nb[n] = u
+                n += 1
+        for a in range(n):
+            x = nb[a]
+            adj[x, v] = False
+            deg[x] -= 1
+            for b in range(a + 1, n):
+                y = nb[b]
+                if not adj[x, y]:
+                    adj[x, y] = True
+                    adj[y, x] = True
+                    deg[x] += 1
+                    deg[y] += 1
+    return perm
+
+
+@_jit
+def symbolic(m, h_ptr, h_vars, pos, relax, cap):  # pragma: no cover - compiled
+    """Elimination tree and relaxed supernodes of ``m`` variables eliminated in the order
+    ``pos`` (the position of each variable) whose graph joins every pair within each
+    hyperedge ``h_vars[h_ptr[k]:h_ptr[k+1]]``.
+
+    ``struct[j]``, the variables after ``j`` that share a row with it once the earlier ones
+    are eliminated, is its own later neighbours plus its children's structures; its parent
+    is the first of them. Variable ``j`` joins its parent's clique when that adds at most
+    ``relax`` zero blocks to its row and the clique has fewer than ``cap`` variables.
+
+    Returns ``(lvp, nfr, cnt, group)``: cliques numbered leaves first, each as its frontal
+    positions followed by its separator positions (ascending) in ``lvp``; ``nfr`` and
+    ``cnt`` the frontal and total counts per clique; ``group[j]`` the clique of position
+    ``j``.
+    """
+    # edges by position: each hyperedge's first variable to eliminate to the others (the
+    # rest of the hyperedge's pairs appear as fill in that variable's structure)
+    ne = len(h_vars)
+    ea = np.empty(ne, np.int64)
+    eb = np.empty(ne, np.int64)
+    for k in range(len(h_ptr) - 1):
+        lo = m
+        for a in range(h_ptr[k], h_ptr[k + 1]):
+            lo = min(lo, pos[h_vars[a]])
+        for a in range(h_ptr[k], h_ptr[k + 1]):
+            ea[a] = lo
+            eb[a] = pos[h_vars[a]]
+    # later neighbours of each position (CSR)
+    deg = np.zeros(m + 1, np.int64)
+    for k in range(len(ea)):
+        if ea[k] != eb[k]:
+            deg[ea[k] + 1] += 1
+    aptr = np.cumsum(deg)
+    adj = np.empty(aptr[m], np.int64)
+    fill = aptr[:m].copy()
+    for k in range(len(ea)):
+        if ea[k] != eb[k]:
+            adj[fill[ea[k]]] = eb[k]
+            fill[ea[k]] += 1
+    # structures (CSR, grown column by column), elimination tree
+    sptr = np.zeros(m + 1, np.int64)
+    spool = np.empty(max(16, 4 * m), np.int64)
+    parent = np.full(m, -1, np.int64)
+    head = np.full(m, -1, np.int64)  # first child of each position
+    nxt = np.full(m, -1, np.int64)  # next sibling
+    mark = np.full(m, -1, np.int64)
+    buf = np.empty(m, np.int64)
+    for j in range(m):
+        n = 0
+        mark[j] = j
+        for q in range(aptr[j], aptr[j + 1]):
+            b = adj[q]
+            if mark[b] != j:
+                mark[b] = j
+                buf[n] = b
+                n += 1
+        c = head[j]
+        while c >= 0:
+            for q in range(sptr[c], sptr[c + 1]):
+                b = spool[q]
+                if mark[b] != j:
+                    mark[b] = j
+                    buf[n] = b
+                    n += 1
+            c = nxt[c]
+        s = np.sort(buf[:n])
+        if sptr[j] + n > len(spool):
+            grown = np.empty(2 * (sptr[j] + n), np.int64)
+            grown[: sptr[j]] = spool[: sptr[j]]
+            spool = grown
+        spool[sptr[j] : sptr[j] + n] = s
+        sptr[j + 1] = sptr[j] + n
+        if n:
+            p = s[0]
+            parent[j] = p
+            nxt[j] = head[p]
+            head[p] = j
+    # relaxed supernodes, from the roots down
+    group = np.empty(m, np.int64)
+    gsize = np.zeros(m, np.int64)
+    ngroup = 0
+    for j in range(m - 1, -1, -1):
+        p = parent[j]
+        if p >= 0 and (sptr[p + 1] - sptr[p]) + 1 - (sptr[j + 1] - sptr[j]) <= relax and gsize[group[p]] < cap:
+            group[j] = group[p]
+            gsize[group[p]] += 1
+        else:
+            group[j] = ngroup
+            gsize[ngroup] = 1
+            ngroup += 1
+    # cliques leaves first (clique i = group ngroup - 1 - i), frontal ascending
+    nfr = np.zeros(ngroup, np.int64)
+    last = np.full(ngroup, -1, np.int64)
+    for j in range(m):
+        i = ngroup - 1 - group[j]
+        nfr[i] += 1
+        last[i] = j  # the clique's last frontal variable: its structure is the separator
+    cnt = np.empty(ngroup, np.int64)
+    for i in range(ngroup):
+        j = last[i]
+        cnt[i] = nfr[i] + sptr[j + 1] - sptr[j]
+    start = np.zeros(ngroup + 1, np.int64)
+    for i in range(ngroup):
+        start[i + 1] = start[i] + cnt[i]
+    lvp = np.empty(start[ngroup], np.int64)
+    put = start[:ngroup].copy()
+    for j in range(m):
+        i = ngroup - 1 - group[j]
+        lvp[put[i]] = j
+        put[i] += 1
+    for i in range(ngroup):
+        j = last[i]
+        lvp[put[i] : put[i] + sptr[j + 1] - sptr[j]] = spool[sptr[j] : sptr[j + 1]]
+    return lvp, nfr, cnt, group[:m]
+
+
+@_jit
+def _cholesky_inverse(A: np.ndarray) -> tuple[np.ndarray, bool]:  # pragma: no cover - compiled
+    """``L^-1`` for the lower Cholesky factor ``L`` of ``A`` (only its lower triangle is
+    read), and whether ``A`` was positive definite."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return L, False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+    Li = np.zeros((n, n))
+    for j in range(n):
+        Li[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            t = 0.0
+            for k in range(j, i):
+                t -= L[i, k] * Li[k, j]
+            Li[i, j] = t / L[i, i]
+    return Li, True
+
+
+@_jit
+def numeric(  # pragma: no cover - compiled
+    seg, nfr, lv_all, off_all, dloc, sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
+    parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b,
+    dofs_all, dseg, dx,
+    rptr, Rpool, sptr, Spool, dptr, dpool, aptr, Apool, bptr, bpool, upool,
+):  # fmt: skip
+    """Eliminate the new cliques, leaves first, and back-substitute them from the roots.
+
+    Clique ``i``'s frontal matrix is ``sizes[i]`` square, frontal dofs first (``nfs[i]``
+    of them); its variables (top-local indices) are ``lv_all[seg[i]:seg[i+1]]``, frontal
+    first, at dof offsets ``off_all`` within the matrix; ``dloc`` is each top-local
+    variable's tangent size. It gathers the constraints it eliminates (``c_own[q]`` is
+    constraint ``q``'s clique; its ``c_nv[q]`` variables are the next run of ``c_vars``,
+    its Gram block ``J^T J`` and gradient ``J^T r`` the next runs of ``c_G`` and ``c_b``)
+    and its children's cached factors: new cliques (``parent_rel``, relative index, -1 =
+    root) and orphans (``o_par``; separator ``o_sep[o_ptr[k]:o_ptr[k+1]]``, factor ``o_A``
+    from ``o_aptr`` and ``o_b`` from the separator dof offsets).
+
+    Writes each clique's ``Rinv`` (``R^-1``), ``S``, ``d``, cached factor ``(Ac, bc)`` and
+    the separator offsets used by its back-substitution into the pools at the given
+    offsets, and the new frontal offsets into ``dx`` (by permanent dof ``dofs_all``,
+    clique ``i``'s from ``dseg[i]``). Returns -1, or the first clique whose frontal block
+    is not positive definite (then ``dx`` is untouched).
+    """
+    ng = len(nfr)
+    nor = len(o_par)
+    # children of each clique, new ones then orphans (linked lists)
+    head = np.full(ng, -1, np.int64)
+    nxt = np.full(ng + nor, -1, np.int64)
+    for k in range(ng):
+        p = parent_rel[k]
+        if p >= 0:
+            nxt[k] = head[p]
+            head[p] = k
+    for k in range(nor):
+        p = o_par[k]
+        nxt[ng + k] = head[p]
+        head[p] = ng + k
+    lo2 = np.zeros(len(dloc), np.int64)
+    ix = np.empty(max(1, np.max(sizes)) if ng else 1, np.int64)
+    # the constraints by clique (counting sort), and where each one's data starts
+    nc = len(c_own)
+    qv = np.zeros(nc + 1, np.int64)
+    qg = np.zeros(nc + 1, np.int64)
+    qb = np.zeros(nc + 1, np.int64)
+    qcount = np.zeros(ng + 1, np.int64)
+    for q in range(nc):
+        t = 0
+        for a in range(qv[q], qv[q] + c_nv[q]):
+            t += dloc[c_vars[a]]
+        qv[q + 1] = qv[q] + c_nv[q]
+        qg[q + 1] = qg[q] + t * t
+        qb[q + 1] = qb[q] + t
+        qcount[c_own[q] + 1] += 1
+    qstart = np.cumsum(qcount)
+    qput = qstart[:ng].copy()
+    qorder = np.empty(nc, np.int64)
+    for q in range(nc):
+        qorder[qput[c_own[q]]] = q
+        qput[c_own[q]] += 1
+    boff = np.zeros(ng + 1, np.int64)
+    roff = np.zeros(ng + 1, np.int64)
+    for i in range(ng):
+        boff[i + 1] = boff[i] + sizes[i] * sizes[i]
+        roff[i + 1] = roff[i] + sizes[i]
+    big = np.zeros(boff[ng])
+    rbig = np.zeros(roff[ng])
+    o_bptr = np.zeros(nor + 1, np.int64)  # orphans' bc: one run of dofs per orphan
+    for k in range(nor):
+        t = 0
+        for q in range(o_ptr[k], o_ptr[k + 1]):
+            t += dloc[o_sep[q]]
+        o_bptr[k + 1] = o_bptr[k] + t
+    for i in range(ng):
+        n = sizes[i]
+        nf = nfs[i]
+        F = big[boff[i] : boff[i + 1]].reshape(n, n)
+        rhs = rbig[roff[i] : roff[i + 1]]
+        for q in range(seg[i], seg[i + 1]):
+            lo2[lv_all[q]] = off_all[q]
+        for w in range(qstart[i], qstart[i + 1]):
+            q = qorder[w]
+            t = 0
+            for a in range(qv[q], qv[q + 1]):
+                v = c_vars[a]
+                for e in range(dloc[v]):
+                    ix[t] = lo2[v] + e
+                    t += 1
+            G = c_G[qg[q] : qg[q + 1]].reshape(t, t)
+            bq = c_b[qb[q] : qb[q + 1]]
+            for a in range(t):
+                rhs[ix[a]] -= bq[a]
+                for b in range(t):
+                    F[ix[a], ix[b]] += G[a, b]
+        c = head[i]
+        while c >= 0:
+            # the child's separator dofs within this clique's matrix
+            ns = 0
+            if c < ng:
+                for q in range(seg[c] + nfr[c], seg[c + 1]):
+                    v = lv_all[q]
+                    for t in range(dloc[v]):
+                        ix[ns] = lo2[v] + t
+                        ns += 1
+                Ac = Apool[aptr[c] : aptr[c + 1]].reshape(ns, ns)
+                bc = bpool[bptr[c] : bptr[c + 1]]
+            else:
+                k = c - ng
+                for q in range(o_ptr[k], o_ptr[k + 1]):
+                    v = o_sep[q]
+                    for t in range(dloc[v]):
+                        ix[ns] = lo2[v] + t
+                        ns += 1
+                Ac = o_A[o_aptr[k] : o_aptr[k + 1]].reshape(ns, ns)
+                bc = o_b[o_bptr[k] : o_bptr[k + 1]]
+            for a in range(ns):
+                rhs[ix[a]] += bc[a]
+                for b in range(ns):
+                    F[ix[a], ix[b]] += Ac[a, b]
+            c = nxt[c]
+        Aff = F[:nf, :nf].copy()
+        for a in range(nf):
+            if Aff[a, a] == 0.0:  # a variable without any information stays put
+                Aff[a, a] = 1.0
+        Li, ok = _cholesky_inverse(Aff)
+        if not ok:
+            return i
+        ns = n - nf
+        Rinv = Rpool[rptr[i] : rptr[i + 1]].reshape(nf, nf)
+        Rinv[:, :] = Li.T
+        d = dpool[dptr[i] : dptr[i + 1]]
+        d[:] = np.dot(Li, np.ascontiguousarray(rhs[:nf]))
+        if ns:
+            S = Spool[sptr[i] : sptr[i + 1]].reshape(nf, ns)
+            S[:, :] = np.dot(Li, np.ascontiguousarray(F[:nf, nf:]))
+            St = np.ascontiguousarray(S.T)
+            Apool[aptr[i] : aptr[i + 1]].reshape(ns, ns)[:, :] = F[nf:, nf:] - np.dot(St, S)
+            bpool[bptr[i] : bptr[i + 1]] = rhs[nf:] - np.dot(St, d)
+    # back-substitution, roots first (a parent's index is above its children's)
+    for i in range(ng - 1, -1, -1):
+        nf = nfs[i]
+        ns = sizes[i] - nf
+        f0 = dseg[i]
+        Rinv = Rpool[rptr[i] : rptr[i + 1]].reshape(nf, nf)
+        y = dpool[dptr[i] : dptr[i + 1]].copy()
+        if ns:
+            sep = upool[bptr[i] : bptr[i + 1]]
+            for a in range(ns):
+                sep[a] = dx[dofs_all[f0 + nf + a]]
+            S = Spool[sptr[i] : sptr[i + 1]].reshape(nf, ns)
+            y -= np.dot(S, np.ascontiguousarray(sep))
+        new = np.dot(Rinv, y)
+        for a in range(nf):
+            dx[dofs_all[f0 + a]] = new[a]
+    return -1
