@@ -53,6 +53,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _treekern
+from ._blocks import one_blas_thread
 
 try:  # pragma: no cover - import guard
     from sksparse.cholmod import analyze as _cholmod_analyze
@@ -62,6 +63,7 @@ except ImportError:  # pragma: no cover
     _HAVE_CHOLMOD = False
 
 _EMPTY1, _EMPTY2 = np.zeros(0), np.zeros((0, 0))
+_SCRATCH_MIN = 1 << 21  # doubles (16 MB) of new conditionals above which the scratch buffer is used
 _MD_MAX = 256  # tops up to this size are ordered by the compiled minimum degree; larger by AMD
 
 
@@ -137,6 +139,7 @@ class BayesTree:
         self.relax = 2
         self.max_frontal = 8
         self.last_reeliminated = 0  # variables re-eliminated by the last update
+        self._scratch = np.zeros(0)  # see update(): large tops' conditionals, copied out
 
     # --- variables ------------------------------------------------------------------------
     def add_vars(self, dofs: np.ndarray, dims: np.ndarray) -> np.ndarray:
@@ -302,7 +305,19 @@ class BayesTree:
         # for (solve_pending, solve_path)
         nss = sizes - nfs
         rptr, sptr, dptr, aptr, bptr = (_offsets(x) for x in (nfs * nfs, nfs * nss, nfs, nss * nss, nss))
-        pools = [np.empty(int(p[-1])) for p in (rptr, sptr, dptr, aptr, bptr, bptr)]
+        need = [int(p[-1]) for p in (rptr, sptr, dptr, aptr, bptr, bptr)]
+        # A large top (hundreds of cliques) writes tens of MB of conditionals and cached
+        # factors: fresh memory that large comes from mmap, and its page faults took 3-4x
+        # the arithmetic on this machine. Those go through a reused scratch buffer and are
+        # copied out per clique (heap-sized pieces, reused); small tops get fresh pools.
+        scratch = sum(need) > _SCRATCH_MIN
+        if scratch:
+            if len(self._scratch) < sum(need):
+                self._scratch = np.empty(max(sum(need), 2 * len(self._scratch)))
+            cut = _offsets(np.asarray(need, np.int64)).tolist()
+            pools = [self._scratch[cut[k] : cut[k + 1]] for k in range(6)]
+        else:
+            pools = [np.empty(n) for n in need]
         oc = [cl[o] for o in orphans]
         o_ptr = _offsets(np.asarray([len(L) for L in orph_loc], np.int64))
         o_aptr = _offsets(np.asarray([c.Ac.size for c in oc], np.int64))
@@ -312,11 +327,12 @@ class BayesTree:
             else (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
         )
         parent_rel = np.where(parent_id >= 0, parent_id - base, -1)
-        bad = _treekern.numeric(
-            seg, nfr, lv_all, off_all, self.dim[top], sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
-            parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b, dofs_all, dseg, self.dx,
-            rptr, pools[0], sptr, pools[1], dptr, pools[2], aptr, pools[3], bptr, pools[4], pools[5],
-        )  # fmt: skip
+        with one_blas_thread():  # small products: BLAS threads would contend with JAX's
+            bad = _treekern.numeric(
+                seg, nfr, lv_all, off_all, self.dim[top], sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
+                parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b, dofs_all, dseg, self.dx,
+                rptr, pools[0], sptr, pools[1], dptr, pools[2], aptr, pools[3], bptr, pools[4], pools[5],
+            )  # fmt: skip
         if bad >= 0:
             bad_vars = new[bad].frontal.tolist()
             raise NotPositiveDefinite(f"frontal block of variables {bad_vars} is not positive definite")
@@ -331,6 +347,10 @@ class BayesTree:
             c.Ac = Ap[al[i] : al[i + 1]].reshape(ns, ns)
             c.bc = bp[bl[i] : bl[i + 1]]
             c.sep_used = up[bl[i] : bl[i + 1]]
+            if scratch:
+                c.Rinv, c.S, c.d, c.Ac, c.bc, c.sep_used = (
+                    x.copy() for x in (c.Rinv, c.S, c.d, c.Ac, c.bc, c.sep_used)
+                )
         self.pending.update(orphans)
         return top
 

@@ -281,13 +281,11 @@ def numeric(  # pragma: no cover - compiled
     for q in range(nc):
         qorder[qput[c_own[q]]] = q
         qput[c_own[q]] += 1
-    boff = np.zeros(ng + 1, np.int64)
-    roff = np.zeros(ng + 1, np.int64)
-    for i in range(ng):
-        boff[i + 1] = boff[i] + sizes[i] * sizes[i]
-        roff[i + 1] = roff[i] + sizes[i]
-    big = np.zeros(boff[ng])
-    rbig = np.zeros(roff[ng])
+    # one frontal matrix at a time: a workspace of the largest (a fresh buffer for all of
+    # them at once costs page faults that took longer than the arithmetic on big tops)
+    nmax = max(1, np.max(sizes)) if ng else 1
+    work = np.empty(nmax * nmax)
+    rwork = np.empty(nmax)
     o_bptr = np.zeros(nor + 1, np.int64)  # orphans' bc: one run of dofs per orphan
     for k in range(nor):
         t = 0
@@ -297,8 +295,10 @@ def numeric(  # pragma: no cover - compiled
     for i in range(ng):
         n = sizes[i]
         nf = nfs[i]
-        F = big[boff[i] : boff[i + 1]].reshape(n, n)
-        rhs = rbig[roff[i] : roff[i + 1]]
+        F = work[: n * n].reshape(n, n)
+        F[:, :] = 0.0
+        rhs = rwork[:n]
+        rhs[:] = 0.0
         for q in range(seg[i], seg[i + 1]):
             lo2[lv_all[q]] = off_all[q]
         for w in range(qstart[i], qstart[i + 1]):
