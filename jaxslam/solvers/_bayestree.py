@@ -348,9 +348,8 @@ class BayesTree:
             c.bc = bp[bl[i] : bl[i + 1]]
             c.sep_used = up[bl[i] : bl[i + 1]]
             if scratch:
-                c.Rinv, c.S, c.d, c.Ac, c.bc, c.sep_used = (
-                    x.copy() for x in (c.Rinv, c.S, c.d, c.Ac, c.bc, c.sep_used)
-                )
+                c.Rinv, c.S, c.Ac = c.Rinv.copy(), c.S.copy(), c.Ac.copy()
+                c.d, c.bc, c.sep_used = c.d.copy(), c.bc.copy(), c.sep_used.copy()
         self.pending.update(orphans)
         return top
 
