@@ -74,6 +74,18 @@ def min_degree(m: int, h_ptr: np.ndarray, h_vars: np.ndarray, last: np.ndarray) 
 
 
 @_jit
+def _union(vals: np.ndarray, j: int, mark: np.ndarray, buf: np.ndarray, n: int) -> int:  # pragma: no cover
+    """Append to ``buf[:n]`` the ``vals`` not yet marked with ``j`` (marking them); returns
+    the new count."""
+    for b in vals:
+        if mark[b] != j:
+            mark[b] = j
+            buf[n] = b
+            n += 1
+    return n
+
+
+@_jit
 def symbolic(m, h_ptr, h_vars, pos, relax, cap):  # pragma: no cover - compiled
     """Elimination tree and relaxed supernodes of ``m`` variables eliminated in the order
     ``pos`` (the position of each variable) whose graph joins every pair within each
@@ -122,22 +134,11 @@ def symbolic(m, h_ptr, h_vars, pos, relax, cap):  # pragma: no cover - compiled
     mark = np.full(m, -1, np.int64)
     buf = np.empty(m, np.int64)
     for j in range(m):
-        n = 0
         mark[j] = j
-        for q in range(aptr[j], aptr[j + 1]):
-            b = adj[q]
-            if mark[b] != j:
-                mark[b] = j
-                buf[n] = b
-                n += 1
+        n = _union(adj[aptr[j] : aptr[j + 1]], j, mark, buf, 0)  # its later neighbours
         c = head[j]
-        while c >= 0:
-            for q in range(sptr[c], sptr[c + 1]):
-                b = spool[q]
-                if mark[b] != j:
-                    mark[b] = j
-                    buf[n] = b
-                    n += 1
+        while c >= 0:  # and its children's structures
+            n = _union(spool[sptr[c] : sptr[c + 1]], j, mark, buf, n)
             c = nxt[c]
         s = np.sort(buf[:n])
         if sptr[j] + n > len(spool):
@@ -221,6 +222,29 @@ def _cholesky_inverse(A: np.ndarray) -> tuple[np.ndarray, bool]:  # pragma: no c
 
 
 @_jit
+def _dofs_in(vs: np.ndarray, dloc: np.ndarray, lo2: np.ndarray, ix: np.ndarray) -> int:  # pragma: no cover
+    """Write into ``ix`` the dofs of variables ``vs`` (top-local) within the clique whose
+    variables start at dof offsets ``lo2``; returns how many."""
+    n = 0
+    for v in vs:
+        for e in range(dloc[v]):
+            ix[n] = lo2[v] + e
+            n += 1
+    return n
+
+
+@_jit
+def _add(
+    F: np.ndarray, rhs: np.ndarray, ix: np.ndarray, M: np.ndarray, g: np.ndarray, sign: float
+) -> None:  # pragma: no cover
+    """``F[ix, ix] += M`` and ``rhs[ix] += sign * g`` (the first ``len(g)`` of ``ix``)."""
+    for a in range(len(g)):
+        rhs[ix[a]] += sign * g[a]
+        for b in range(len(g)):
+            F[ix[a], ix[b]] += M[a, b]
+
+
+@_jit
 def numeric(  # pragma: no cover - compiled
     seg, nfr, lv_all, off_all, dloc, sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
     parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b,
@@ -268,10 +292,8 @@ def numeric(  # pragma: no cover - compiled
     qb = np.zeros(nc + 1, np.int64)
     qcount = np.zeros(ng + 1, np.int64)
     for q in range(nc):
-        t = 0
-        for a in range(qv[q], qv[q] + c_nv[q]):
-            t += dloc[c_vars[a]]
         qv[q + 1] = qv[q] + c_nv[q]
+        t = np.sum(dloc[c_vars[qv[q] : qv[q + 1]]])
         qg[q + 1] = qg[q] + t * t
         qb[q + 1] = qb[q] + t
         qcount[c_own[q] + 1] += 1
@@ -288,10 +310,7 @@ def numeric(  # pragma: no cover - compiled
     rwork = np.empty(nmax)
     o_bptr = np.zeros(nor + 1, np.int64)  # orphans' bc: one run of dofs per orphan
     for k in range(nor):
-        t = 0
-        for q in range(o_ptr[k], o_ptr[k + 1]):
-            t += dloc[o_sep[q]]
-        o_bptr[k + 1] = o_bptr[k] + t
+        o_bptr[k + 1] = o_bptr[k] + np.sum(dloc[o_sep[o_ptr[k] : o_ptr[k + 1]]])
     for i in range(ng):
         n = sizes[i]
         nf = nfs[i]
@@ -301,45 +320,19 @@ def numeric(  # pragma: no cover - compiled
         rhs[:] = 0.0
         for q in range(seg[i], seg[i + 1]):
             lo2[lv_all[q]] = off_all[q]
-        for w in range(qstart[i], qstart[i + 1]):
+        for w in range(qstart[i], qstart[i + 1]):  # its constraints: + J^T J, - J^T r
             q = qorder[w]
-            t = 0
-            for a in range(qv[q], qv[q + 1]):
-                v = c_vars[a]
-                for e in range(dloc[v]):
-                    ix[t] = lo2[v] + e
-                    t += 1
-            G = c_G[qg[q] : qg[q + 1]].reshape(t, t)
-            bq = c_b[qb[q] : qb[q + 1]]
-            for a in range(t):
-                rhs[ix[a]] -= bq[a]
-                for b in range(t):
-                    F[ix[a], ix[b]] += G[a, b]
+            t = _dofs_in(c_vars[qv[q] : qv[q + 1]], dloc, lo2, ix)
+            _add(F, rhs, ix, c_G[qg[q] : qg[q + 1]].reshape(t, t), c_b[qb[q] : qb[q + 1]], -1.0)
         c = head[i]
-        while c >= 0:
-            # the child's separator dofs within this clique's matrix
-            ns = 0
+        while c >= 0:  # its children's cached factors, on their separators
             if c < ng:
-                for q in range(seg[c] + nfr[c], seg[c + 1]):
-                    v = lv_all[q]
-                    for t in range(dloc[v]):
-                        ix[ns] = lo2[v] + t
-                        ns += 1
-                Ac = Apool[aptr[c] : aptr[c + 1]].reshape(ns, ns)
-                bc = bpool[bptr[c] : bptr[c + 1]]
+                ns = _dofs_in(lv_all[seg[c] + nfr[c] : seg[c + 1]], dloc, lo2, ix)
+                _add(F, rhs, ix, Apool[aptr[c] : aptr[c + 1]].reshape(ns, ns), bpool[bptr[c] : bptr[c + 1]], 1.0)
             else:
                 k = c - ng
-                for q in range(o_ptr[k], o_ptr[k + 1]):
-                    v = o_sep[q]
-                    for t in range(dloc[v]):
-                        ix[ns] = lo2[v] + t
-                        ns += 1
-                Ac = o_A[o_aptr[k] : o_aptr[k + 1]].reshape(ns, ns)
-                bc = o_b[o_bptr[k] : o_bptr[k + 1]]
-            for a in range(ns):
-                rhs[ix[a]] += bc[a]
-                for b in range(ns):
-                    F[ix[a], ix[b]] += Ac[a, b]
+                ns = _dofs_in(o_sep[o_ptr[k] : o_ptr[k + 1]], dloc, lo2, ix)
+                _add(F, rhs, ix, o_A[o_aptr[k] : o_aptr[k + 1]].reshape(ns, ns), o_b[o_bptr[k] : o_bptr[k + 1]], 1.0)
             c = nxt[c]
         Aff = F[:nf, :nf].copy()
         for a in range(nf):
