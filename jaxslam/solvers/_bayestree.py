@@ -233,7 +233,9 @@ class BayesTree:
         # the top's graph as hyperedges (each constraint's variables, each orphan's separator)
         h_vars = np.concatenate([np.zeros(0, np.int64), *(L.ravel() for _, _, L in con_loc), *orph_loc])
         h_len = [np.full(len(L), L.shape[1], np.int64) for _, _, L in con_loc]
-        h_ptr = _offsets(np.concatenate([np.zeros(0, np.int64), *h_len, [len(L) for L in orph_loc]]))
+        h_ptr = _offsets(
+            np.concatenate([np.zeros(0, np.int64), *h_len, np.asarray([len(L) for L in orph_loc], np.int64)])
+        )
         order = self._order(m, top, h_ptr, h_vars, last)
         pos = np.empty(m, np.int64)
         pos[order] = np.arange(m)

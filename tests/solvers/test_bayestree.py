@@ -21,7 +21,7 @@ from jaxslam.factors import (
 )
 from jaxslam.io import read_g2o
 from jaxslam.lie import SE3
-from jaxslam.solvers import IncrementalConfig, IncrementalSolver
+from jaxslam.solvers import IncrementalConfig, IncrementalSolver, _bayestree
 
 from ._imu_chain import imu_chain
 from .test_incremental import DATA, _slice
@@ -64,7 +64,11 @@ def _feed(graph, solver: IncrementalSolver, k: int, vid, edges) -> None:
     solver.update(facs, vals)
 
 
-def test_offsets_are_the_exact_solution_after_every_update() -> None:
+@pytest.mark.parametrize("md_max", [256, 0], ids=["min_degree", "amd_or_natural"])
+def test_offsets_are_the_exact_solution_after_every_update(md_max: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # md_max 0: every top ordered by CHOLMOD's AMD (natural order without CHOLMOD), the path
+    # of tops above 256 variables
+    monkeypatch.setattr(_bayestree, "_MD_MAX", md_max)
     graph = read_g2o(DATA / "smallGrid3D.g2o")
     solver = IncrementalSolver(TREE)
     worst = 0.0
