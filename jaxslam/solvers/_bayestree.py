@@ -169,9 +169,11 @@ class BayesTree:
 
     def _dofs(self, v: np.ndarray) -> np.ndarray:
         """Permanent dofs of variables ``v``, concatenated."""
+        off = self.dof[v]
         if self._bs:
-            return (self.dof[v][:, None] + self._ar).ravel()
-        return self._expand(self.dof[v], v)
+            return (off[:, None] + self._ar).ravel()
+        d = self.dim[v]
+        return np.repeat(off - np.cumsum(d) + d, d) + np.arange(int(d.sum()))
 
     def clear(self) -> None:
         """Forget the factorisation (every variable is re-eliminated at the next update)."""
@@ -447,19 +449,10 @@ class BayesTree:
             perm = np.argsort(top, kind="stable")
         return np.concatenate([perm[~last[perm]], perm[last[perm]]])
 
-    def _expand(self, off: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Dof indices of variables ``v`` whose first dofs are ``off`` (their tangent sizes
-        from :attr:`dim`)."""
-        if self._bs:
-            return (off[:, None] + self._ar).ravel()
-        d = self.dim[v]
-        return np.repeat(off - np.cumsum(d) + d, d) + np.arange(int(d.sum()))
-
-    def _solve(self, c: _Clique, sep: np.ndarray | None = None) -> np.ndarray:
-        """Back-substitute one clique given its separator's offsets (read from :attr:`dx`
-        when not passed); returns its new frontal offsets."""
-        if sep is None:
-            sep = self.dx[c.sdofs]
+    def _solve(self, c: _Clique, sep: np.ndarray) -> np.ndarray:
+        """Back-substitute one clique given its separator's offsets (the new cliques of an
+        update are back-substituted in the compiled kernel); returns its new frontal
+        offsets."""
         new = c.Rinv @ (c.d - c.S @ sep) if sep.size else c.Rinv @ c.d
         self.dx[c.fdofs] = new
         c.sep_used = sep
