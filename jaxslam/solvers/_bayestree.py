@@ -336,6 +336,7 @@ class BayesTree:
                 seg, nfr, lv_all, off_all, self.dim[top], sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
                 parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b, dofs_all, dseg, self.dx,
                 rptr, pools[0], sptr, pools[1], dptr, pools[2], aptr, pools[3], bptr, pools[4], pools[5],
+                _treekern.BLAS,
             )  # fmt: skip
         if bad >= 0:
             bad_vars = new[bad].frontal.tolist()
@@ -358,19 +359,14 @@ class BayesTree:
         return top
 
     def _visit(self, c: _Clique) -> tuple[bool, bool]:
-        """Wildfire at one clique: recompute it when its separator's offsets drifted by more
-        than the threshold since it was last solved. Returns (recomputed, its children need a
-        look): the children need one when its frontal or separator offsets moved by more than
-        the threshold; the separator part is what GTSAM's check of a child's parent keys
-        catches, a change further up the path that this clique's own offsets did not show."""
-        wf = self.wildfire
-        sep = self.dx[c.sdofs]
-        drift = float(np.max(np.abs(sep - c.sep_used))) if sep.size else 0.0
-        if wf > 0.0 and drift <= wf:
-            return False, False
-        old = self.dx[c.fdofs]
-        new = self._solve(c, sep)
-        return True, wf <= 0.0 or drift > wf or float(np.max(np.abs(new - old))) > wf
+        """Wildfire at one clique (compiled: :func:`._treekern.visit`): recompute it when its
+        separator's offsets drifted by more than the threshold since it was last solved.
+        Returns (recomputed, its children need a look): the children need one when its
+        frontal or separator offsets moved by more than the threshold; the separator part is
+        what GTSAM's check of a child's parent keys catches, a change further up the path
+        that this clique's own offsets did not show."""
+        k = _treekern.visit(self.dx, c.fdofs, c.sdofs, c.sep_used, c.Rinv, c.S, c.d, self.wildfire)
+        return k > 0, k > 1
 
     def solve_pending(self) -> np.ndarray:
         """Back-substitute below the cliques left pending by updates (the orphans of the
@@ -448,12 +444,3 @@ class BayesTree:
         else:
             perm = np.argsort(top, kind="stable")
         return np.concatenate([perm[~last[perm]], perm[last[perm]]])
-
-    def _solve(self, c: _Clique, sep: np.ndarray) -> np.ndarray:
-        """Back-substitute one clique given its separator's offsets (the new cliques of an
-        update are back-substituted in the compiled kernel); returns its new frontal
-        offsets."""
-        new = c.Rinv @ (c.d - c.S @ sep) if sep.size else c.Rinv @ c.d
-        self.dx[c.fdofs] = new
-        c.sep_used = sep
-        return new

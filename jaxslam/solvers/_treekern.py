@@ -2,21 +2,53 @@
 
 An update of the tree re-eliminates a few dozen variables in about ten small cliques. Written
 as numpy calls, each clique costs some twenty calls of a few microseconds of overhead each,
-which made the Python bookkeeping, not the arithmetic, most of an update's time. These two
-kernels run the symbolic phase (elimination tree, relaxed supernodes) and the numeric phase
-(assembly of children's cached factors, dense Cholesky of each clique, back-substitution of
-the new cliques) in compiled loops; the tree's state stays in the Python cliques.
+which made the Python bookkeeping, not the arithmetic, most of an update's time. These
+kernels run the ordering (minimum degree), the symbolic phase (elimination tree, relaxed
+supernodes), the numeric phase (assembly of children's cached factors, dense Cholesky of
+each clique, back-substitution of the new cliques) and one clique's step of the lazy
+back-substitution (the wildfire) in compiled loops; the tree's state stays in the Python
+cliques.
 
 Written here, not taken from a library: no package offers partial re-elimination of a sparse
-Cholesky factor. The dense products go to BLAS through numba's ``np.dot``.
+Cholesky factor. The frontal matrices and cached factors keep their lower triangles only;
+the Schur complement is SciPy's BLAS ``dsyrk`` (half of a full product's arithmetic), called
+in place by address (:func:`_fcall`).
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import get_cython_function_address, intrinsic
 
 _jit = numba.njit(cache=True, nogil=True)
+
+# SciPy's BLAS (the one numba's np.dot uses), called by address: dsyrk and dgemm write the
+# Schur complement and the conditional in place, where np.dot's temporaries (megabytes per
+# clique on large tops, fresh pages each) cost more than the arithmetic. The addresses are
+# passed to the kernels at run time (a compiled-in address would not survive numba's cache).
+BLAS = np.asarray([get_cython_function_address("scipy.linalg.cython_blas", f) for f in ("dsyrk", "dgemm")], np.int64)
+_SYRK, _GEMM = 0, 1
+
+
+@intrinsic
+def _fcall(typingctx, addr, ptrs):  # pragma: no cover - compiled
+    """Call the Fortran-convention function at ``addr`` with the pointers ``ptrs`` (a tuple
+    of addresses as integers)."""
+    if not isinstance(ptrs, types.BaseTuple) or not all(isinstance(t, types.Integer) for t in ptrs):
+        return None
+
+    def codegen(context, builder, sig, args):
+        p8 = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [p8] * len(ptrs))
+        fn = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(fn, [builder.inttoptr(v, p8) for v in cgutils.unpack_tuple(builder, args[1])])
+        return context.get_dummy_value()
+
+    return types.void(types.int64, ptrs), codegen
 
 
 @_jit
@@ -237,11 +269,56 @@ def _dofs_in(vs: np.ndarray, dloc: np.ndarray, lo2: np.ndarray, ix: np.ndarray) 
 def _add(
     F: np.ndarray, rhs: np.ndarray, ix: np.ndarray, M: np.ndarray, g: np.ndarray, sign: float
 ) -> None:  # pragma: no cover
-    """``F[ix, ix] += M`` and ``rhs[ix] += sign * g`` (the first ``len(g)`` of ``ix``)."""
+    """``F[ix, ix] += M`` on ``F``'s lower triangle (only ``M``'s lower triangle is read: a
+    cached factor's upper is not kept; ``ix`` need not ascend) and ``rhs[ix] += sign * g``
+    (the first ``len(g)`` of ``ix``)."""
     for a in range(len(g)):
         rhs[ix[a]] += sign * g[a]
-        for b in range(len(g)):
-            F[ix[a], ix[b]] += M[a, b]
+        i = ix[a]
+        for b in range(a + 1):
+            j = ix[b]
+            if i >= j:
+                F[i, j] += M[a, b]
+            else:
+                F[j, i] += M[a, b]
+
+
+@_jit
+def _blas_args(ib: np.ndarray, db: np.ndarray, ch: np.ndarray) -> None:  # pragma: no cover
+    """The constant arguments the BLAS calls read by pointer (``ch``: 'U', 'N', 'T')."""
+    ch[0], ch[1], ch[2] = ord("U"), ord("N"), ord("T")
+    db[0], db[1], db[2] = -1.0, 1.0, 0.0
+
+
+@_jit
+def _schur(
+    blas: np.ndarray,
+    F: np.ndarray,
+    nf: int,
+    Li: np.ndarray,
+    S: np.ndarray,
+    A: np.ndarray,
+    ib: np.ndarray,
+    db: np.ndarray,
+    ch: np.ndarray,
+) -> None:  # pragma: no cover
+    """From the frontal matrix ``F`` (lower triangle; ``nf`` frontal dofs first) and
+    ``Li = L^-1`` of its frontal block: ``S = Li F[:nf, nf:]`` (``nf x ns``) and the lower
+    triangle of the Schur complement ``A = F[nf:, nf:] - S^T S``, in place (dgemm, dsyrk)."""
+    n = F.shape[0]
+    ns = n - nf
+    for r in range(ns):
+        for c in range(r + 1):
+            A[r, c] = F[nf + r, nf + c]
+    ib[0], ib[1], ib[2], ib[3] = ns, nf, n, nf
+    ch_, ib_, db_ = ch.ctypes.data, ib.ctypes.data, db.ctypes.data
+    # column-major: S^T (ns x nf, ld ns) = B Li^T, B = F[nf:, :nf] (stored as B^T, ld n)
+    _fcall(blas[_GEMM], (ch_ + 2, ch_ + 1, ib_, ib_ + 4, ib_ + 4, db_ + 8,
+                         F.ctypes.data + 8 * nf * n, ib_ + 8, Li.ctypes.data, ib_ + 12,
+                         db_ + 16, S.ctypes.data, ib_))  # fmt: skip
+    # column-major upper of A (its row-major lower) -= (S^T)(S^T)^T
+    _fcall(blas[_SYRK], (ch_, ch_ + 1, ib_, ib_ + 4, db_, S.ctypes.data, ib_,
+                         db_ + 8, A.ctypes.data, ib_))  # fmt: skip
 
 
 @_jit
@@ -249,7 +326,7 @@ def numeric(  # pragma: no cover - compiled
     seg, nfr, lv_all, off_all, dloc, sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
     parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b,
     dofs_all, dseg, dx,
-    rptr, Rpool, sptr, Spool, dptr, dpool, aptr, Apool, bptr, bpool, upool,
+    rptr, Rpool, sptr, Spool, dptr, dpool, aptr, Apool, bptr, bpool, upool, blas,
 ):  # fmt: skip
     """Eliminate the new cliques, leaves first, and back-substitute them from the roots.
 
@@ -265,11 +342,16 @@ def numeric(  # pragma: no cover - compiled
 
     Writes each clique's ``Rinv`` (``R^-1``), ``S``, ``d``, cached factor ``(Ac, bc)`` and
     the separator offsets used by its back-substitution into the pools at the given
-    offsets, and the new frontal offsets into ``dx`` (by permanent dof ``dofs_all``,
-    clique ``i``'s from ``dseg[i]``). Returns -1, or the first clique whose frontal block
-    is not positive definite (then ``dx`` is untouched).
+    offsets (of ``Ac``, the lower triangle only), and the new frontal offsets into ``dx``
+    (by permanent dof ``dofs_all``, clique ``i``'s from ``dseg[i]``). Returns -1, or the
+    first clique whose frontal block is not positive definite (then ``dx`` is untouched).
+    ``blas``: :data:`BLAS`.
     """
     ng = len(nfr)
+    ib = np.empty(4, np.int32)
+    db = np.empty(3)
+    ch = np.empty(3, np.uint8)
+    _blas_args(ib, db, ch)
     nor = len(o_par)
     # children of each clique, new ones then orphans (linked lists)
     head = np.full(ng, -1, np.int64)
@@ -315,7 +397,8 @@ def numeric(  # pragma: no cover - compiled
         n = sizes[i]
         nf = nfs[i]
         F = work[: n * n].reshape(n, n)
-        F[:, :] = 0.0
+        for r in range(n):  # only the lower triangle is assembled and read
+            F[r, : r + 1] = 0.0
         rhs = rwork[:n]
         rhs[:] = 0.0
         for q in range(seg[i], seg[i + 1]):
@@ -334,8 +417,10 @@ def numeric(  # pragma: no cover - compiled
                 ns = _dofs_in(o_sep[o_ptr[k] : o_ptr[k + 1]], dloc, lo2, ix)
                 _add(F, rhs, ix, o_A[o_aptr[k] : o_aptr[k + 1]].reshape(ns, ns), o_b[o_bptr[k] : o_bptr[k + 1]], 1.0)
             c = nxt[c]
-        Aff = F[:nf, :nf].copy()
+        Aff = np.empty((nf, nf))
         for a in range(nf):
+            for b in range(a + 1):
+                Aff[a, b] = F[a, b]
             if Aff[a, a] == 0.0:  # a variable without any information stays put
                 Aff[a, a] = 1.0
         Li, ok = _cholesky_inverse(Aff)
@@ -345,13 +430,20 @@ def numeric(  # pragma: no cover - compiled
         Rinv = Rpool[rptr[i] : rptr[i + 1]].reshape(nf, nf)
         Rinv[:, :] = Li.T
         d = dpool[dptr[i] : dptr[i + 1]]
-        d[:] = np.dot(Li, np.ascontiguousarray(rhs[:nf]))
+        for a in range(nf):
+            t = 0.0
+            for b in range(a + 1):
+                t += Li[a, b] * rhs[b]
+            d[a] = t
         if ns:
             S = Spool[sptr[i] : sptr[i + 1]].reshape(nf, ns)
-            S[:, :] = np.dot(Li, np.ascontiguousarray(F[:nf, nf:]))
-            St = np.ascontiguousarray(S.T)
-            Apool[aptr[i] : aptr[i + 1]].reshape(ns, ns)[:, :] = F[nf:, nf:] - np.dot(St, S)
-            bpool[bptr[i] : bptr[i + 1]] = rhs[nf:] - np.dot(St, d)
+            _schur(blas, F, nf, Li, S, Apool[aptr[i] : aptr[i + 1]].reshape(ns, ns), ib, db, ch)
+            bc = bpool[bptr[i] : bptr[i + 1]]
+            for a in range(ns):
+                bc[a] = rhs[nf + a]
+            for b in range(nf):
+                for a in range(ns):
+                    bc[a] -= S[b, a] * d[b]
     # back-substitution, roots first (a parent's index is above its children's)
     for i in range(ng - 1, -1, -1):
         nf = nfs[i]
@@ -369,3 +461,36 @@ def numeric(  # pragma: no cover - compiled
         for a in range(nf):
             dx[dofs_all[f0 + a]] = new[a]
     return -1
+
+
+@_jit
+def visit(dx, fdofs, sdofs, sep_used, Rinv, S, d, wf):  # pragma: no cover - compiled
+    """Wildfire at one clique: when its separator's offsets ``dx[sdofs]`` drifted from
+    ``sep_used`` (those it was last solved with) by more than ``wf`` (or always, ``wf`` 0),
+    back-substitute it (``dx[fdofs] = Rinv (d - S sep)``, ``sep_used = sep``). Returns 0
+    (left alone), 1 (recomputed) or 2 (recomputed, and its frontal or separator offsets moved
+    by more than ``wf``: its children need a look)."""
+    nf = len(fdofs)
+    ns = len(sdofs)
+    drift = 0.0
+    for a in range(ns):
+        drift = max(drift, abs(dx[sdofs[a]] - sep_used[a]))
+    if wf > 0.0 and drift <= wf:
+        return 0
+    spread = wf <= 0.0 or drift > wf
+    for a in range(ns):
+        sep_used[a] = dx[sdofs[a]]
+    y = np.empty(nf)
+    for r in range(nf):
+        t = d[r]
+        for a in range(ns):
+            t -= S[r, a] * sep_used[a]
+        y[r] = t
+    for r in range(nf):
+        t = 0.0
+        for k in range(r, nf):  # Rinv = R^-1 is upper triangular
+            t += Rinv[r, k] * y[k]
+        if abs(t - dx[fdofs[r]]) > wf:
+            spread = True
+        dx[fdofs[r]] = t
+    return 2 if spread else 1

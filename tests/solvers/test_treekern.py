@@ -172,6 +172,7 @@ def test_numeric_solves_a_dense_system_and_reports_an_indefinite_block() -> None
             parent_rel, e0, np.zeros(1, np.int64), e0, np.zeros(1, np.int64), f0, f0,
             dofs_all, dseg, dx,
             ptrs[0], pools[0], ptrs[1], pools[1], ptrs[2], pools[2], ptrs[3], pools[3], ptrs[4], pools[4], pools[5],
+            _treekern.BLAS,
         )  # fmt: skip
 
     dx = np.zeros(m * d)
