@@ -47,6 +47,7 @@ graph types, and no Python package offers partial re-elimination of a sparse Cho
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import numpy as np
@@ -64,6 +65,7 @@ except ImportError:  # pragma: no cover
 
 _EMPTY1, _EMPTY2 = np.zeros(0), np.zeros((0, 0))
 _SCRATCH_MIN = 1 << 21  # doubles (16 MB) of new conditionals above which the scratch buffer is used
+_BLAS_ONE_THREAD_ABOVE = 64  # frontal matrices larger than this: BLAS held to one thread
 _MD_MAX = 256  # tops up to this size are ordered by the compiled minimum degree; larger by AMD
 
 
@@ -331,7 +333,9 @@ class BayesTree:
             else (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
         )
         parent_rel = np.where(parent_id >= 0, parent_id - base, -1)
-        with one_blas_thread():  # small products: BLAS threads would contend with JAX's
+        # BLAS on one thread (its threads would contend with JAX's) where a product is large
+        # enough for BLAS to start them at all; setting the count costs more than a small top
+        with one_blas_thread() if int(sizes.max()) > _BLAS_ONE_THREAD_ABOVE else contextlib.nullcontext():
             bad = _treekern.numeric(
                 seg, nfr, lv_all, off_all, self.dim[top], sizes, nfs, c_own, c_nv, c_vars, c_G, c_b,
                 parent_rel, o_par, o_ptr, o_sep, o_aptr, o_A, o_b, dofs_all, dseg, self.dx,

@@ -59,6 +59,7 @@ import scipy.sparse as sp
 from ..core import Factor, MarginalFactor, Values, Variable, linearize
 from ..errors import ConfigError, GraphError
 from ..lie import mm, mT
+from . import _liekern
 from ._bayestree import BayesTree
 from ._bayestree import NotPositiveDefinite as TreeNotPositiveDefinite
 from ._blocks import BlockInformation, NotPositiveDefinite, pairs
@@ -338,71 +339,17 @@ def _retract(vtype: type[Variable], x: jax.Array, d: jax.Array) -> jax.Array:
     return vtype.retract(x, d)
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = a[:, 0], a[:, 1], a[:, 2], a[:, 3]
-    bw, bx, by, bz = b[:, 0], b[:, 1], b[:, 2], b[:, 3]
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=1,
-    )
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of ``(n, 3)`` arrays (``np.cross`` costs ~30 us of argument
-    handling per call, more than the arithmetic on a few rows)."""
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
-
-
-def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    w, u = q[:, :1], q[:, 1:]
-    t = 2.0 * _cross(u, v)
-    return v + w * t + _cross(u, t)
-
-
 def _np_retract(vtype: type[Variable], x: np.ndarray, d: np.ndarray) -> np.ndarray | None:
-    """``x ⊕ d`` in numpy for the common types (a few rows per update: no JAX dispatch);
-    None for other types. Same formulas as ``jaxslam.lie`` (tested against it)."""
+    """``x ⊕ d`` without JAX for the common types (a few rows per update: no JAX dispatch;
+    compiled, :mod:`._liekern`); None for other types. Same formulas as ``jaxslam.lie``
+    (tested against it)."""
     name = getattr(vtype.group, "__name__", None)
     if vtype.group is None:
         return x + d
     if name in ("SO3", "SE3"):
-        w = d[:, :3]
-        th2 = np.sum(w * w, axis=1)
-        th = np.sqrt(th2)
-        small = th2 < 1e-8
-        ths = np.where(small, 1.0, th)
-        s_half = np.where(small, 0.5 - th2 / 48.0, np.sin(0.5 * ths) / ths)
-        dq = np.concatenate([np.cos(0.5 * th)[:, None], s_half[:, None] * w], axis=1)
-        q = _quat_mul(x[:, :4], dq)
-        if name == "SO3":
-            return q
-        rho = d[:, 3:]
-        th2s = np.where(small, 1.0, th2)
-        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / th2s)
-        c = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / (th2s * ths))
-        wr = _cross(w, rho)
-        v_rho = rho + b[:, None] * wr + c[:, None] * _cross(w, wr)
-        return np.concatenate([q, x[:, 4:] + _quat_rotate(x[:, :4], v_rho)], axis=1)
+        return _liekern.retract_so3_se3(np.ascontiguousarray(x), np.ascontiguousarray(d), name == "SE3")
     if name == "SE2":
-        th = d[:, 0]
-        th2 = th * th
-        small = th2 < 1e-8
-        ths = np.where(small, 1.0, th)
-        a = np.where(small, 1.0 - th2 / 6.0, np.sin(ths) / ths)
-        b = np.where(small, 0.5 * th - th * th2 / 24.0, (1.0 - np.cos(ths)) / ths)
-        lx = a * d[:, 1] - b * d[:, 2]
-        ly = b * d[:, 1] + a * d[:, 2]
-        c, s = np.cos(th), np.sin(th)
-        xc, xs = x[:, 0], x[:, 1]
-        rc, rs = xc * c - xs * s, xs * c + xc * s
-        return np.stack([rc, rs, x[:, 2] + xc * lx - xs * ly, x[:, 3] + xs * lx + xc * ly], axis=1)
+        return _liekern.retract_se2(np.ascontiguousarray(x), np.ascontiguousarray(d))
     return None
 
 

@@ -30,8 +30,12 @@ _jit = numba.njit(cache=True, nogil=True)
 # Schur complement and the conditional in place, where np.dot's temporaries (megabytes per
 # clique on large tops, fresh pages each) cost more than the arithmetic. The addresses are
 # passed to the kernels at run time (a compiled-in address would not survive numba's cache).
-BLAS = np.asarray([get_cython_function_address("scipy.linalg.cython_blas", f) for f in ("dsyrk", "dgemm")], np.int64)
-_SYRK, _GEMM = 0, 1
+BLAS = np.asarray(
+    [get_cython_function_address("scipy.linalg.cython_blas", f) for f in ("dsyrk", "dgemm")]
+    + [get_cython_function_address("scipy.linalg.cython_lapack", f) for f in ("dpotrf", "dtrtri")],
+    np.int64,
+)
+_SYRK, _GEMM, _POTRF, _TRTRI = 0, 1, 2, 3
 
 
 @intrinsic
@@ -224,33 +228,21 @@ def symbolic(m, h_ptr, h_vars, pos, relax, cap):  # pragma: no cover - compiled
 
 
 @_jit
-def _cholesky_inverse(A: np.ndarray) -> tuple[np.ndarray, bool]:  # pragma: no cover - compiled
-    """``L^-1`` for the lower Cholesky factor ``L`` of ``A`` (only its lower triangle is
-    read), and whether ``A`` was positive definite."""
+def _cholesky_inverse(blas: np.ndarray, A: np.ndarray, ib: np.ndarray, ch: np.ndarray) -> bool:  # pragma: no cover
+    """``A`` (row-major, its lower triangle read) becomes ``L^-1`` for its lower Cholesky
+    factor ``L`` (upper triangle zero), by LAPACK ``dpotrf`` and ``dtrtri`` on its
+    column-major view (whose upper triangle is the row-major lower); False when ``A`` is
+    not positive definite."""
     n = A.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return L, False
-        d = np.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / d
-    Li = np.zeros((n, n))
-    for j in range(n):
-        Li[j, j] = 1.0 / L[j, j]
-        for i in range(j + 1, n):
-            t = 0.0
-            for k in range(j, i):
-                t -= L[i, k] * Li[k, j]
-            Li[i, j] = t / L[i, i]
-    return Li, True
+    for r in range(n):
+        A[r, r + 1 :] = 0.0
+    ib[0] = n
+    ch_, ib_ = ch.ctypes.data, ib.ctypes.data
+    _fcall(blas[_POTRF], (ch_, ib_, A.ctypes.data, ib_, ib_ + 12))
+    if ib[3] != 0:
+        return False
+    _fcall(blas[_TRTRI], (ch_, ch_ + 1, ib_, A.ctypes.data, ib_, ib_ + 12))
+    return ib[3] == 0
 
 
 @_jit
@@ -423,8 +415,8 @@ def numeric(  # pragma: no cover - compiled
                 Aff[a, b] = F[a, b]
             if Aff[a, a] == 0.0:  # a variable without any information stays put
                 Aff[a, a] = 1.0
-        Li, ok = _cholesky_inverse(Aff)
-        if not ok:
+        Li = Aff
+        if not _cholesky_inverse(blas, Li, ib, ch):
             return i
         ns = n - nf
         Rinv = Rpool[rptr[i] : rptr[i + 1]].reshape(nf, nf)
