@@ -362,23 +362,19 @@ class BayesTree:
         self.pending.update(orphans)
         return top
 
-    def _visit(self, c: _Clique) -> tuple[bool, bool]:
+    def _visit(self, c: _Clique) -> bool:
         """Wildfire at one clique (compiled: :func:`._treekern.visit`): recompute it when its
-        separator's offsets drifted by more than the threshold since it was last solved.
-        Returns (recomputed, its children need a look): the children need one when its
-        frontal or separator offsets moved by more than the threshold; the separator part is
-        what GTSAM's check of a child's parent keys catches, a change further up the path
-        that this clique's own offsets did not show."""
-        k = _treekern.visit(self.dx, c.fdofs, c.sdofs, c.sep_used, c.Rinv, c.S, c.d, self.wildfire)
-        return k > 0, k > 1
+        separator's offsets drifted by more than the threshold since it was last solved (every
+        time with threshold 0). Returns whether it was; then its children need a look too: a
+        change of its separator, the parent keys GTSAM checks, may have moved theirs."""
+        return bool(_treekern.visit(self.dx, c.fdofs, c.sdofs, c.sep_used, c.Rinv, c.S, c.d, self.wildfire))
 
     def solve_pending(self) -> np.ndarray:
         """Back-substitute below the cliques left pending by updates (the orphans of the
         re-eliminated tops, the children of cliques that moved), from the roots down: a
         clique is recomputed when its separator drifted by more than the wildfire threshold
-        since it was last solved, and its children are looked at when it or its separator
-        moved by more than that (all the way with ``wildfire=0``). Returns the variables
-        recomputed."""
+        since it was last solved, and the children of a recomputed clique are looked at (all
+        the way down with ``wildfire=0``). Returns the variables recomputed."""
         if not self.pending:
             return np.zeros(0, np.int64)
         cl = self.cliques
@@ -394,10 +390,8 @@ class BayesTree:
                     continue
                 done.add(cid)
                 c = cl[cid]
-                solved, spread = self._visit(c)
-                if solved:
+                if self._visit(c):
                     out.append(c.frontal)
-                if spread:
                     stack.extend(c.children)
         self.pending.clear()
         return np.concatenate(out) if out else np.zeros(0, np.int64)
@@ -422,11 +416,10 @@ class BayesTree:
         for k in range(top, -1, -1):
             cid = path[k]
             c = cl[cid]
-            solved, spread = self._visit(c)
+            solved = self._visit(c)
             self.pending.discard(cid)
             if solved:
                 out.append(c.frontal)
-            if spread:
                 nxt = path[k - 1] if k else -1
                 self.pending.update(ch for ch in c.children if ch != nxt)
         return np.concatenate(out) if out else np.zeros(0, np.int64)

@@ -458,18 +458,16 @@ def numeric(  # pragma: no cover - compiled
 @_jit
 def visit(dx, fdofs, sdofs, sep_used, Rinv, S, d, wf):  # pragma: no cover - compiled
     """Wildfire at one clique: when its separator's offsets ``dx[sdofs]`` drifted from
-    ``sep_used`` (those it was last solved with) by more than ``wf`` (or always, ``wf`` 0),
-    back-substitute it (``dx[fdofs] = Rinv (d - S sep)``, ``sep_used = sep``). Returns 0
-    (left alone), 1 (recomputed) or 2 (recomputed, and its frontal or separator offsets moved
-    by more than ``wf``: its children need a look)."""
+    ``sep_used`` (those it was last solved with) by more than ``wf`` (always, for ``wf``
+    0), back-substitute it: ``dx[fdofs] = Rinv (d - S sep)``, ``sep_used = sep``. Returns
+    whether it did (then its children need a look too)."""
     nf = len(fdofs)
     ns = len(sdofs)
     drift = 0.0
     for a in range(ns):
         drift = max(drift, abs(dx[sdofs[a]] - sep_used[a]))
     if wf > 0.0 and drift <= wf:
-        return 0
-    spread = wf <= 0.0 or drift > wf
+        return False
     for a in range(ns):
         sep_used[a] = dx[sdofs[a]]
     y = np.empty(nf)
@@ -482,7 +480,5 @@ def visit(dx, fdofs, sdofs, sep_used, Rinv, S, d, wf):  # pragma: no cover - com
         t = 0.0
         for k in range(r, nf):  # Rinv = R^-1 is upper triangular
             t += Rinv[r, k] * y[k]
-        if abs(t - dx[fdofs[r]]) > wf:
-            spread = True
         dx[fdofs[r]] = t
-    return 2 if spread else 1
+    return True

@@ -184,3 +184,31 @@ def test_numeric_solves_a_dense_system_and_reports_an_indefinite_block() -> None
     dx2 = np.full(m * d, 5.0)
     assert run(np.concatenate(bad), dx2) >= 0
     assert np.all(dx2 == 5.0)
+
+
+def test_visit_back_substitutes_one_clique_only_when_its_separator_drifted() -> None:
+    """The wildfire's step against numpy: ``dx[F] = R^-1 (d - S dx[S])`` when the separator
+    moved by more than the threshold since ``sep_used`` (always with threshold 0), nothing
+    otherwise."""
+    rng = np.random.default_rng(3)
+    nf, ns = 4, 5
+    Rinv = np.triu(rng.normal(size=(nf, nf))) + 3 * np.eye(nf)
+    S, d = rng.normal(size=(nf, ns)), rng.normal(size=nf)
+    fdofs, sdofs = np.asarray([7, 2, 5, 0]), np.asarray([1, 3, 4, 6, 8])
+    dx0 = rng.normal(size=9)
+    used0 = dx0[sdofs] + 1e-4  # solved with a separator 1e-4 away from the current one
+
+    def run(wf: float) -> tuple[bool, np.ndarray, np.ndarray]:
+        dx, used = dx0.copy(), used0.copy()
+        done = _treekern.visit(dx, fdofs, sdofs, used, Rinv, S, d, wf)
+        return done, dx, used
+
+    done, dx, used = run(1e-3)  # drift 1e-4 below the threshold: left alone
+    assert not done and np.array_equal(dx, dx0) and np.array_equal(used, used0)
+    want = dx0.copy()
+    want[fdofs] = Rinv @ (d - S @ dx0[sdofs])
+    for wf in (1e-5, 0.0):  # drifted past the threshold; threshold 0: always
+        done, dx, used = run(wf)
+        assert done
+        np.testing.assert_allclose(dx, want, rtol=1e-13, atol=1e-13)
+        assert np.array_equal(used, dx0[sdofs])
