@@ -453,9 +453,7 @@ class IncrementalSolver:
         out = []
         for vtype in values.types():
             ids = np.asarray(values.ids(vtype), np.int64)
-            params = np.asarray(values.params(vtype), np.float64)
-            if not np.all(np.isfinite(params)):
-                raise GraphError(f"{vtype.__name__} values are not finite (NaN or inf)")
+            params = np.asarray(values.params(vtype), np.float64)  # finite: checked by _validate
             s = self._store(vtype)
             rows = s.add(ids, params, self._ndof, self.updates)
             if self._tree is not None:

@@ -131,12 +131,16 @@ def _check_factor(f: Factor, index: int) -> int:
     if not isinstance(f, Factor):
         raise TypeError(f"factor {index} is a {type(f).__name__}, not a jaxslam Factor")
     n = f.num_constraints
+    # the leaves' shapes first (np.shape reads numpy and JAX arrays alike, without JAX's
+    # dispatch); their paths, which cost more than the check, only to name a bad one
+    if all(np.ndim(leaf) == 0 or np.shape(leaf)[0] == n for leaf in jax.tree_util.tree_leaves(f)):
+        return n
     for path, leaf in jax.tree_util.tree_leaves_with_path(f):
-        if jnp.ndim(leaf) >= 1 and jnp.shape(leaf)[0] != n:
+        if np.ndim(leaf) >= 1 and np.shape(leaf)[0] != n:
             name = jax.tree_util.keystr(path)
             raise ValueError(
                 f"{type(f).__name__} (factor {index}) has {n} constraints but field {name} has leading "
-                f"dimension {jnp.shape(leaf)[0]}; per-constraint data must have leading axis {n}"
+                f"dimension {np.shape(leaf)[0]}; per-constraint data must have leading axis {n}"
             )
     return n
 
