@@ -259,20 +259,42 @@ def _dofs_in(vs: np.ndarray, dloc: np.ndarray, lo2: np.ndarray, ix: np.ndarray) 
 
 @_jit
 def _add(
-    F: np.ndarray, rhs: np.ndarray, ix: np.ndarray, M: np.ndarray, g: np.ndarray, sign: float
+    W: np.ndarray, A: np.ndarray, nf: int, rhs: np.ndarray, ix: np.ndarray, M: np.ndarray, g: np.ndarray, sign: float
 ) -> None:  # pragma: no cover
-    """``F[ix, ix] += M`` on ``F``'s lower triangle (only ``M``'s lower triangle is read: a
-    cached factor's upper is not kept; ``ix`` need not ascend) and ``rhs[ix] += sign * g``
-    (the first ``len(g)`` of ``ix``)."""
-    for a in range(len(g)):
+    """``F[ix, ix] += M`` on the lower triangle of a frontal matrix ``F`` held as its first
+    ``nf`` columns ``W`` and its separator block ``A = F[nf:, nf:]`` (only ``M``'s lower
+    triangle is read: a cached factor's upper is not kept; ``ix`` need not ascend), and
+    ``rhs[ix] += sign * g`` (the first ``len(g)`` of ``ix``)."""
+    m = len(g)
+    kf = 0  # entries in the frontal columns, when ix ascends (a new child's separator)
+    for a in range(m):
         rhs[ix[a]] += sign * g[a]
-        i = ix[a]
+        if ix[a] < nf:
+            kf = a + 1
+    ascending = True
+    for a in range(1, m):
+        if ix[a] < ix[a - 1]:
+            ascending = False
+            break
+    if ascending:  # row by row, without the swap and the branch
+        for a in range(m):
+            i = ix[a]
+            for b in range(min(a + 1, kf)):
+                W[i, ix[b]] += M[a, b]
+            if i >= nf:
+                Ar = A[i - nf]
+                for b in range(kf, a + 1):
+                    Ar[ix[b] - nf] += M[a, b]
+        return
+    for a in range(m):
         for b in range(a + 1):
-            j = ix[b]
-            if i >= j:
-                F[i, j] += M[a, b]
+            i, j = ix[a], ix[b]
+            if i < j:
+                i, j = j, i
+            if j < nf:
+                W[i, j] += M[a, b]
             else:
-                F[j, i] += M[a, b]
+                A[i - nf, j - nf] += M[a, b]
 
 
 @_jit
@@ -285,7 +307,7 @@ def _blas_args(ib: np.ndarray, db: np.ndarray, ch: np.ndarray) -> None:  # pragm
 @_jit
 def _schur(
     blas: np.ndarray,
-    F: np.ndarray,
+    W: np.ndarray,
     nf: int,
     Li: np.ndarray,
     S: np.ndarray,
@@ -294,19 +316,16 @@ def _schur(
     db: np.ndarray,
     ch: np.ndarray,
 ) -> None:  # pragma: no cover
-    """From the frontal matrix ``F`` (lower triangle; ``nf`` frontal dofs first) and
-    ``Li = L^-1`` of its frontal block: ``S = Li F[:nf, nf:]`` (``nf x ns``) and the lower
-    triangle of the Schur complement ``A = F[nf:, nf:] - S^T S``, in place (dgemm, dsyrk)."""
-    n = F.shape[0]
-    ns = n - nf
-    for r in range(ns):
-        for c in range(r + 1):
-            A[r, c] = F[nf + r, nf + c]
-    ib[0], ib[1], ib[2], ib[3] = ns, nf, n, nf
+    """From the first ``nf`` columns ``W`` of a frontal matrix ``F`` (lower triangle) and
+    ``Li = L^-1`` of its frontal block: ``S = Li F[:nf, nf:]`` (``nf x ns``), and ``A``
+    (``F[nf:, nf:]``, lower triangle) becomes the Schur complement ``A - S^T S``, in place
+    (dgemm, dsyrk)."""
+    ns = W.shape[0] - nf
+    ib[0], ib[1], ib[2] = ns, nf, nf
     ch_, ib_, db_ = ch.ctypes.data, ib.ctypes.data, db.ctypes.data
-    # column-major: S^T (ns x nf, ld ns) = B Li^T, B = F[nf:, :nf] (stored as B^T, ld n)
+    # column-major: S^T (ns x nf, ld ns) = B Li^T, B = W[nf:] (stored as B^T, ld nf)
     _fcall(blas[_GEMM], (ch_ + 2, ch_ + 1, ib_, ib_ + 4, ib_ + 4, db_ + 8,
-                         F.ctypes.data + 8 * nf * n, ib_ + 8, Li.ctypes.data, ib_ + 12,
+                         W.ctypes.data + 8 * nf * nf, ib_ + 8, Li.ctypes.data, ib_ + 8,
                          db_ + 16, S.ctypes.data, ib_))  # fmt: skip
     # column-major upper of A (its row-major lower) -= (S^T)(S^T)^T
     _fcall(blas[_SYRK], (ch_, ch_ + 1, ib_, ib_ + 4, db_, S.ctypes.data, ib_,
@@ -377,10 +396,11 @@ def numeric(  # pragma: no cover - compiled
     for q in range(nc):
         qorder[qput[c_own[q]]] = q
         qput[c_own[q]] += 1
-    # one frontal matrix at a time: a workspace of the largest (a fresh buffer for all of
-    # them at once costs page faults that took longer than the arithmetic on big tops)
+    # one frontal matrix at a time: a workspace for the frontal columns of the largest (a
+    # fresh buffer for all of them at once costs page faults that took longer than the
+    # arithmetic on big tops)
     nmax = max(1, np.max(sizes)) if ng else 1
-    work = np.empty(nmax * nmax)
+    work = np.empty(max(1, np.max(sizes * nfs)) if ng else 1)
     rwork = np.empty(nmax)
     o_bptr = np.zeros(nor + 1, np.int64)  # orphans' bc: one run of dofs per orphan
     for k in range(nor):
@@ -388,9 +408,15 @@ def numeric(  # pragma: no cover - compiled
     for i in range(ng):
         n = sizes[i]
         nf = nfs[i]
-        F = work[: n * n].reshape(n, n)
-        for r in range(n):  # only the lower triangle is assembled and read
-            F[r, : r + 1] = 0.0
+        ns = n - nf
+        # the frontal matrix's lower triangle: its first nf columns in the workspace, its
+        # separator block straight in the clique's cached-factor slot (the Schur complement
+        # is computed there in place)
+        W = work[: n * nf].reshape(n, nf)
+        W[:, :] = 0.0
+        A = Apool[aptr[i] : aptr[i + 1]].reshape(ns, ns)
+        for r in range(ns):
+            A[r, : r + 1] = 0.0
         rhs = rwork[:n]
         rhs[:] = 0.0
         for q in range(seg[i], seg[i + 1]):
@@ -398,27 +424,27 @@ def numeric(  # pragma: no cover - compiled
         for w in range(qstart[i], qstart[i + 1]):  # its constraints: + J^T J, - J^T r
             q = qorder[w]
             t = _dofs_in(c_vars[qv[q] : qv[q + 1]], dloc, lo2, ix)
-            _add(F, rhs, ix, c_G[qg[q] : qg[q + 1]].reshape(t, t), c_b[qb[q] : qb[q + 1]], -1.0)
+            _add(W, A, nf, rhs, ix, c_G[qg[q] : qg[q + 1]].reshape(t, t), c_b[qb[q] : qb[q + 1]], -1.0)
         c = head[i]
         while c >= 0:  # its children's cached factors, on their separators
             if c < ng:
-                ns = _dofs_in(lv_all[seg[c] + nfr[c] : seg[c + 1]], dloc, lo2, ix)
-                _add(F, rhs, ix, Apool[aptr[c] : aptr[c + 1]].reshape(ns, ns), bpool[bptr[c] : bptr[c + 1]], 1.0)
+                nc = _dofs_in(lv_all[seg[c] + nfr[c] : seg[c + 1]], dloc, lo2, ix)
+                _add(W, A, nf, rhs, ix, Apool[aptr[c] : aptr[c + 1]].reshape(nc, nc), bpool[bptr[c] : bptr[c + 1]], 1.0)
             else:
                 k = c - ng
-                ns = _dofs_in(o_sep[o_ptr[k] : o_ptr[k + 1]], dloc, lo2, ix)
-                _add(F, rhs, ix, o_A[o_aptr[k] : o_aptr[k + 1]].reshape(ns, ns), o_b[o_bptr[k] : o_bptr[k + 1]], 1.0)
+                nc = _dofs_in(o_sep[o_ptr[k] : o_ptr[k + 1]], dloc, lo2, ix)
+                oA = o_A[o_aptr[k] : o_aptr[k + 1]].reshape(nc, nc)
+                _add(W, A, nf, rhs, ix, oA, o_b[o_bptr[k] : o_bptr[k + 1]], 1.0)
             c = nxt[c]
         Aff = np.empty((nf, nf))
         for a in range(nf):
             for b in range(a + 1):
-                Aff[a, b] = F[a, b]
+                Aff[a, b] = W[a, b]
             if Aff[a, a] == 0.0:  # a variable without any information stays put
                 Aff[a, a] = 1.0
         Li = Aff
         if not _cholesky_inverse(blas, Li, ib, ch):
             return i
-        ns = n - nf
         Rinv = Rpool[rptr[i] : rptr[i + 1]].reshape(nf, nf)
         Rinv[:, :] = Li.T
         d = dpool[dptr[i] : dptr[i + 1]]
@@ -429,7 +455,7 @@ def numeric(  # pragma: no cover - compiled
             d[a] = t
         if ns:
             S = Spool[sptr[i] : sptr[i + 1]].reshape(nf, ns)
-            _schur(blas, F, nf, Li, S, Apool[aptr[i] : aptr[i + 1]].reshape(ns, ns), ib, db, ch)
+            _schur(blas, W, nf, Li, S, A, ib, db, ch)
             bc = bpool[bptr[i] : bptr[i + 1]]
             for a in range(ns):
                 bc[a] = rhs[nf + a]
