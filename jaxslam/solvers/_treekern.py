@@ -17,6 +17,8 @@ in place by address (:func:`_fcall`).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 from llvmlite import ir
@@ -26,10 +28,12 @@ from numba.extending import get_cython_function_address, intrinsic
 
 _jit = numba.njit(cache=True, nogil=True)
 
-# SciPy's BLAS (the one numba's np.dot uses), called by address: dsyrk and dgemm write the
-# Schur complement and the conditional in place, where np.dot's temporaries (megabytes per
-# clique on large tops, fresh pages each) cost more than the arithmetic. The addresses are
-# passed to the kernels at run time (a compiled-in address would not survive numba's cache).
+# SciPy's BLAS and LAPACK (those numba's np.dot and np.linalg use), called by address: dsyrk
+# and dgemm write the Schur complement and the conditional in place, where np.dot's
+# temporaries (megabytes per clique on large tops, fresh pages each) cost more than the
+# arithmetic; dpotrf and dtrtri factorise and invert a clique's frontal block. The addresses
+# are passed to the kernels at run time (a compiled-in address would not survive numba's
+# cache).
 BLAS = np.asarray(
     [get_cython_function_address("scipy.linalg.cython_blas", f) for f in ("dsyrk", "dgemm")]
     + [get_cython_function_address("scipy.linalg.cython_lapack", f) for f in ("dpotrf", "dtrtri")],
@@ -38,8 +42,7 @@ BLAS = np.asarray(
 _SYRK, _GEMM, _POTRF, _TRTRI = 0, 1, 2, 3
 
 
-@intrinsic
-def _fcall(typingctx, addr, ptrs):  # pragma: no cover - compiled
+def _fcall_typing(typingctx, addr, ptrs):  # pragma: no cover - compiled
     """Call the Fortran-convention function at ``addr`` with the pointers ``ptrs`` (a tuple
     of addresses as integers)."""
     if not isinstance(ptrs, types.BaseTuple) or not all(isinstance(t, types.Integer) for t in ptrs):
@@ -53,6 +56,9 @@ def _fcall(typingctx, addr, ptrs):  # pragma: no cover - compiled
         return context.get_dummy_value()
 
     return types.void(types.int64, ptrs), codegen
+
+
+_fcall: Any = intrinsic(_fcall_typing)  # typed Any: numba's stub wants the typing context too
 
 
 @_jit
