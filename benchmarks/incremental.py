@@ -14,7 +14,11 @@ Timed per update: ``update`` plus reading the new vertex's estimate (ours:
 ``IncrementalSolver.update`` + ``value(vtype, id)``; GTSAM: ``ISAM2.update`` +
 ``calculateEstimate(key)``, default ``ISAM2Params``). ``--engine bayes_tree`` runs the
 solver's Bayes-tree engine (its relinearisation defaults are iSAM2's). Building the factor
-and value objects is not timed (for either). Both final estimates are scored by GTSAM on
+and value objects is not timed (for either). After an untimed warm-up pass of ours (JAX and
+numba compilation, reported apart), the two solvers run the whole stream ``--rounds`` times
+(default 3), alternating, and each timing figure is the median over the rounds (every
+round's figures in JSON ``rounds``): the machine's speed drifts, and alternating lets a
+drift touch both. Both final estimates are scored by GTSAM on
 the whole graph (``graph.error``); the batch optimum is GTSAM's Levenberg-Marquardt on the
 whole graph started from iSAM2's final estimate.
 We also report jaxslam's cost after ``optimize()`` (full relinearisation), its relative gap
@@ -259,7 +263,15 @@ def isam2_spread(stream: Stream, ours_cost: float) -> dict:
     }
 
 
-def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int, spread: bool = False) -> dict:
+def _median_stats(rounds: list[dict]) -> dict:
+    """Each timing field's median over the rounds (the final cost is the same in every round:
+    both solvers are deterministic)."""
+    out = {k: float(np.median([r[k] for r in rounds])) for k in ("total_s", "p50_ms", "p95_ms", "max_ms")}
+    out["final_cost"] = rounds[-1]["final_cost"]
+    return out
+
+
+def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int, spread: bool = False, n_rounds: int = 3) -> dict:
     import gtsam
 
     path = resolve(name)
@@ -275,17 +287,24 @@ def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int, spread: bo
     first_pass_s = time.perf_counter() - t
     del warm
 
-    ours_raw, solver, ours_ck = run_ours(stream, cfg, checkpoints)
-    ours_vals = values_to_gtsam(solver.estimate())
-    ours_cost = float(stream.gt_graph.error(ours_vals))
+    # ours and iSAM2 alternate, round after round, so a drift in the machine's speed (a shared
+    # VM here swings by 30 % over minutes) touches both; each figure is the median of rounds
+    per_round = []
+    for _ in range(n_rounds):
+        ours_raw, solver, ours_ck = run_ours(stream, cfg, checkpoints)
+        ours_vals = values_to_gtsam(solver.estimate())
+        ours_cost = float(stream.gt_graph.error(ours_vals))
+        isam_raw, isam, isam_ck = run_isam2(stream, checkpoints)
+        isam_est = isam.calculateEstimate()
+        isam_cost = float(stream.gt_graph.error(isam_est))
+        per_round.append(
+            {"ours": _stats(ours_raw["latencies"], ours_cost), "isam2": _stats(isam_raw["latencies"], isam_cost)}
+        )
     t = time.perf_counter()
     solver.optimize()
     opt_s = time.perf_counter() - t
     ours_opt = float(stream.gt_graph.error(values_to_gtsam(solver.estimate())))
 
-    isam_raw, isam, isam_ck = run_isam2(stream, checkpoints)
-    isam_est = isam.calculateEstimate()
-    isam_cost = float(stream.gt_graph.error(isam_est))
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-12)
     params.setAbsoluteErrorTol(1e-12)
@@ -309,8 +328,9 @@ def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int, spread: bo
     out = {
         "file": os.path.basename(path),
         "updates": n,
-        "ours": _stats(ours_raw["latencies"], ours_cost),
-        "isam2": _stats(isam_raw["latencies"], isam_cost),
+        "ours": _median_stats([r["ours"] for r in per_round]),
+        "isam2": _median_stats([r["isam2"] for r in per_round]),
+        "rounds": per_round,
         "batch_optimum_cost": batch_cost,
         "batch_lm_from": batch_costs,
         "guess": GUESS,
@@ -329,6 +349,10 @@ def bench_file(name: str, cfg: IncrementalConfig, n_checkpoints: int, spread: bo
         print("  iSAM2 with its relinearisation settings one step either side of the defaults:", flush=True)
         out["isam2_spread"] = isam2_spread(stream, ours_cost)
     o, i = out["ours"], out["isam2"]
+    print(
+        f"  {n_rounds} rounds (medians below); ours/isam2 total per round: "
+        + " ".join(f"{r['ours']['total_s']:.2f}/{r['isam2']['total_s']:.2f}" for r in per_round)
+    )
     print(
         f"  ours : total {o['total_s']:.2f} s  p50 {o['p50_ms']:.2f}  p95 {o['p95_ms']:.2f}  max {o['max_ms']:.1f} ms"
         f"  final cost {o['final_cost']:.6g}  ({out['ours_full_solves']} full solves; "
@@ -393,6 +417,12 @@ def main() -> None:
     )
     ap.add_argument("--checkpoints", type=int, default=10)
     ap.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="timed runs of each solver, alternating ours and iSAM2; the figures are the medians",
+    )
+    ap.add_argument(
         "--isam2-spread",
         action="store_true",
         help="also run iSAM2 with each relinearisation setting one step either side of its default "
@@ -421,7 +451,9 @@ def main() -> None:
         engine=a.engine,
         wildfire=a.wildfire,
     )
-    results = [bench_file(f, cfg, a.checkpoints, a.isam2_spread) for f in a.files]
+    if a.rounds < 1:
+        raise SystemExit("--rounds must be at least 1")
+    results = [bench_file(f, cfg, a.checkpoints, a.isam2_spread, a.rounds) for f in a.files]
     for r in results:
         r["jax_sync_dispatch"] = a.sync_dispatch
     if a.json:

@@ -8,6 +8,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytest.importorskip("gtsam")
@@ -32,11 +33,17 @@ def test_benchmark_writes_the_issue_json(tmp_path, monkeypatch, capsys, engine: 
     spread = engine == "window"  # once is enough
     if spread:
         argv.append("--isam2-spread")
+    rounds = 2 if spread else 1
+    argv += ["--rounds", str(rounds)]
     monkeypatch.setattr("sys.argv", argv)
     bench.main()
     assert "variables re-eliminated per update" in capsys.readouterr().out
     (res,) = json.loads(out.read_text())
     assert res["file"] == "tinyGrid3D.g2o" and res["updates"] == 9
+    assert len(res["rounds"]) == rounds
+    # each figure is the median over the rounds (with two: their mean)
+    for who in ("ours", "isam2"):
+        assert res[who]["total_s"] == pytest.approx(np.mean([r[who]["total_s"] for r in res["rounds"]]))
     for who in ("ours", "isam2"):
         s = res[who]
         assert set(s) == {"total_s", "p50_ms", "p95_ms", "max_ms", "final_cost"}
