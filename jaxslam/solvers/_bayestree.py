@@ -144,7 +144,9 @@ class BayesTree:
         self._scratch = np.zeros(0)  # see update(): large tops' conditionals, copied out
 
     # --- variables ------------------------------------------------------------------------
-    def add_vars(self, dofs: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    def add_vars(self, dofs: np.ndarray, dim: int) -> np.ndarray:
+        """Number ``len(dofs)`` new variables of tangent size ``dim`` whose offsets start at
+        the permanent ``dofs``; returns their numbers."""
         k = len(dofs)
         need = self.nvar + k
         if need > len(self.dim):
@@ -155,13 +157,14 @@ class BayesTree:
                 arr[: len(old)] = old
                 setattr(self, name, arr)
         nums = np.arange(self.nvar, need)
-        if k:
-            same = np.all(dims == dims[0]) and (self.nvar == 0 or self._bs == dims[0])
-            self._bs = int(dims[0]) if same else 0
+        if k == 0:
+            return nums
+        if self.nvar == 0 or self._bs != dim:
+            self._bs = dim if self.nvar == 0 else 0
             self._ar = np.arange(self._bs)
-        self.dim[nums] = dims
-        self.dof[nums] = dofs
-        top = int(np.max(dofs + dims)) if k else 0
+        self.dim[self.nvar : need] = dim
+        self.dof[self.nvar : need] = dofs
+        top = int(dofs.max()) + dim
         if top > len(self.dx):
             dx = np.zeros(max(top, 2 * len(self.dx)))
             dx[: len(self.dx)] = self.dx

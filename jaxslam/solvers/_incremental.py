@@ -59,7 +59,6 @@ import scipy.sparse as sp
 from ..core import Factor, Gaussian, MarginalFactor, Pose2Var, Pose3Var, Values, Variable, linearize
 from ..errors import ConfigError, GraphError
 from ..factors import BetweenFactor
-from ..lie import mm, mT
 from . import _factorkern, _liekern
 from ._bayestree import BayesTree
 from ._bayestree import NotPositiveDefinite as TreeNotPositiveDefinite
@@ -205,13 +204,14 @@ class _Store:
         k = len(ids)
         self._grow(self.n + k)
         rows = np.arange(self.n, self.n + k)
-        self.ids[rows] = ids
-        self.x[rows] = params
-        self.x_lin[rows] = params
-        self.delta[rows] = 0.0
-        self.dof[rows] = dof0 + self.td * np.arange(k)
-        self.born[rows] = born
-        self.live[rows] = True
+        at = slice(self.n, self.n + k)  # slices: cheaper than the index array for a row or two
+        self.ids[at] = ids
+        self.x[at] = params
+        self.x_lin[at] = params
+        self.delta[at] = 0.0
+        self.dof[at] = dof0 + self.td * rows - self.td * self.n
+        self.born[at] = born
+        self.live[at] = True
         for i, r in zip(ids.tolist(), rows.tolist()):
             self.row_of[i] = r
         self.n += k
@@ -232,6 +232,7 @@ class _Group:
 
     def __init__(self, f: Factor, slots: tuple[int, ...]):
         self.ftype = type(f)
+        self.index = 0  # its place in the solver's group list
         self.var_types = f.variable_types()
         self.slots = slots
         self.rdim = f.residual_dim
@@ -342,11 +343,6 @@ def _linearize_kernel(treedef: Any) -> Any:
 
     _KERNELS[treedef] = kernel
     return kernel
-
-
-@jax.jit
-def _gram(J: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Array]:
-    return mm(mT(J), J), jnp.sum(J * r[:, :, None], axis=1)
 
 
 @functools.partial(jax.jit, static_argnames=("vtype",))
@@ -464,15 +460,16 @@ class IncrementalSolver:
             self._store_list.append(s)
         return s
 
-    def _add_values(self, values: Values) -> list[tuple[_Store, np.ndarray]]:
+    def _add_values(
+        self, values: list[tuple[type[Variable], np.ndarray, np.ndarray]]
+    ) -> list[tuple[_Store, np.ndarray]]:
+        """Add the variables ``(type, ids, params)`` that :meth:`_validate` checked."""
         out = []
-        for vtype in values.types():
-            ids = np.asarray(values.ids(vtype), np.int64)
-            params = np.asarray(values.params(vtype), np.float64)  # finite: checked by _validate
+        for vtype, ids, params in values:
             s = self._store(vtype)
             rows = s.add(ids, params, self._ndof, self.updates)
             if self._tree is not None:
-                s.vnum[rows] = self._tree.add_vars(s.dof[rows], np.full(len(rows), s.td, np.int64))
+                s.vnum[rows] = self._tree.add_vars(s.dof[rows], s.td)
             else:
                 s.vnum[rows] = np.arange(self._nvar, self._nvar + len(rows))
             self._nvar += len(rows)
@@ -480,8 +477,12 @@ class IncrementalSolver:
             out.append((s, rows))
         return out
 
-    def _add_factor(self, f: Factor, index: int) -> tuple[int, list[tuple[int, int]]]:
-        n = _check_factor(f, index)
+    def _add_factor(
+        self, f: Factor, index: int, checked: tuple[int, Any] | None = None
+    ) -> tuple[int, list[tuple[int, int]]]:
+        """Add factor ``f`` (``checked``: its constraint count and group key from
+        :meth:`_validate`, else found here)."""
+        n, key = checked if checked is not None else (_check_factor(f, index), group_key(f))
         rows = []
         slots = []
         for v in f.variables:
@@ -496,13 +497,13 @@ class IncrementalSolver:
                 )
             rows.append(r)
             slots.append(s.index)
-        key = group_key(f)
         g = self.groups.get(key)
         if g is None:
             g = _Group(f, tuple(slots))
+            g.index = len(self._group_list)
             self.groups[key] = g
             self._group_list.append(g)
-        gi = self._group_list.index(g)
+        gi = g.index
         born = [self._store_list[si].born[r] for si, r in zip(slots, rows)]
         newest = np.max(np.stack(born, axis=1), axis=1) if n else np.zeros(0, np.int64)
         idx = g.add(f, np.stack(rows, axis=1) if n else np.zeros((0, len(rows)), np.int64), newest)
@@ -595,15 +596,15 @@ class IncrementalSolver:
         dirty: dict[int, list[int]] = {}  # group -> constraints to relinearise
         removed_vars: list[np.ndarray] = []
         new_vars: list[np.ndarray] = []
-        self._validate(new_factors, new_values, remove)
-        if new_values is not None and len(new_values):
-            for s, rows in self._add_values(new_values):
+        checked_values, checked_factors = self._validate(new_factors, new_values, remove)
+        if checked_values:
+            for s, rows in self._add_values(checked_values):
                 affected.setdefault(s.index, set()).update(rows.tolist())
                 new_vars.append(s.vnum[rows])
         handles = []
         new_refs: list[tuple[int, int]] = []
         for i, f in enumerate(new_factors):
-            h, refs = self._add_factor(f, i)
+            h, refs = self._add_factor(f, i, checked_factors[i])
             handles.append(h)
             new_refs.extend(refs)
         for h in remove:
@@ -766,14 +767,23 @@ class IncrementalSolver:
         self._tree_stale = True  # every variable re-eliminated, every clique solved
         self._tree_update([], {})
 
-    def _validate(self, factors: Sequence[Factor], values: Values | None, remove: Sequence[int]) -> None:
-        """Reject a bad update before anything changes (so a rejected update loses nothing)."""
+    def _validate(
+        self, factors: Sequence[Factor], values: Values | None, remove: Sequence[int]
+    ) -> tuple[list[tuple[type[Variable], np.ndarray, np.ndarray]], list[tuple[int, Any]]]:
+        """Reject a bad update before anything changes (so a rejected update loses nothing).
+        Returns the new values as numpy ``(type, ids, params)`` and each factor's constraint
+        count and group key."""
         fresh: dict[type[Variable], set[int]] = {}
+        checked_values = []
+        checked_factors = []
         if values is not None:
             for vtype in values.types():
                 ids = np.asarray(values.ids(vtype), np.int64)
-                if not np.all(np.isfinite(np.asarray(values.params(vtype)))):
+                params = np.asarray(values.params(vtype), np.float64)
+                if not np.all(np.isfinite(params)):
                     raise GraphError(f"{vtype.__name__} values are not finite (NaN or inf)")
+                if len(ids):
+                    checked_values.append((vtype, ids, params))
                 s = self.stores.get(vtype)
                 for i in ids.tolist():
                     if s is not None and i in s.row_of:
@@ -784,8 +794,9 @@ class IncrementalSolver:
                 raise GraphError(f"no factor with handle {h} (already removed?)")
         shared: dict[Any, list[Any]] = {}  # per group key: the shared leaves the group keeps
         for k, f in enumerate(factors):
-            _check_factor(f, k)
+            n = _check_factor(f, k)
             key = group_key(f)
+            checked_factors.append((n, key))
             g = self.groups.get(key)
             check_shared_leaves(g.shared if g is not None else shared.setdefault(key, shared_leaves(f)), f)
             for v in f.variables:
@@ -804,6 +815,7 @@ class IncrementalSolver:
                         raise GraphError(
                             f"{type(f).__name__} (factor {k}) uses {vt.__name__} {i}, which was marginalised"
                         )
+        return checked_values, checked_factors
 
     def _loop_window(self, refs: list[tuple[int, int]]) -> int | None:
         """Update number of the oldest variable on a loop that a new factor closes with a
@@ -1046,16 +1058,9 @@ class IncrementalSolver:
         self._tree_stale = self._tree is not None
 
     def _gram(self, J: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        m = len(J)
-        if m <= 64:
-            return _factorkern.gram(np.ascontiguousarray(J), np.ascontiguousarray(e))
-        G = np.empty((m, J.shape[2], J.shape[2]))
-        gv = np.empty((m, J.shape[2]))
-        for lo, hi, cap in _chunks(m, self.config.chunk_sizes):
-            Gc, gc = _gram(_pad_rows(J[lo:hi], cap), _pad_rows(e[lo:hi], cap))
-            G[lo:hi] = np.asarray(Gc)[: hi - lo]
-            gv[lo:hi] = np.asarray(gc)[: hi - lo]
-        return G, gv
+        """Per constraint ``J^T J`` and ``J^T e`` (compiled loops: a relinearisation step's
+        thousand 6x12 blocks in ~0.3 ms, where the padded JAX kernel took milliseconds)."""
+        return _factorkern.gram(np.ascontiguousarray(J), np.ascontiguousarray(e))
 
     # --- full step -------------------------------------------------------------------------------
     def _dof_map(self) -> tuple[np.ndarray, int]:

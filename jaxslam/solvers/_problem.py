@@ -75,6 +75,14 @@ def check_shared_leaves(shared: list[Any], f: Factor) -> None:
     the group it joins, :func:`shared_leaves`): the group keeps one value per scalar leaf,
     and the solver would otherwise use the first factor's scale for all. Per-constraint
     scales are arrays of length N."""
+    leaves = jax.tree_util.tree_leaves(f)
+    # the common case first, without the leaves' paths (which cost more than the check):
+    # every per-constraint leaf where the group has one, every scalar equal
+    if all(
+        (np.ndim(b) >= 1) if a is None else (np.ndim(b) == 0 and (a is b or _same_scalar(a, b)))
+        for a, b in zip(shared, leaves)
+    ):
+        return
     for a, (path, b) in zip(shared, jax.tree_util.tree_leaves_with_path(f)):
         if (a is None) != (jnp.ndim(b) >= 1):
             raise GraphError(
@@ -87,6 +95,13 @@ def check_shared_leaves(shared: list[Any], f: Factor) -> None:
                 f"{type(f).__name__}: factors of one kind share scalar field {jax.tree_util.keystr(path)}, "
                 f"but these differ ({float(a)!r} and {float(b)!r}); give it per constraint (an array of length N)"
             )
+
+
+def _same_scalar(a: Any, b: Any) -> bool:
+    """Two scalar leaves equal (a traced one is taken as equal: it cannot be read)."""
+    if isinstance(a, jax.core.Tracer) or isinstance(b, jax.core.Tracer):
+        return True
+    return float(a) == float(b)
 
 
 def concatenate_factors(factors: Sequence[Factor]) -> Factor:
