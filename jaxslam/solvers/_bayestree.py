@@ -128,8 +128,6 @@ class BayesTree:
         self.dof = np.zeros(16, np.int64)
         self.clique_of = np.full(16, -1, np.int64)
         self._loc = np.zeros(16, np.int64)  # scratch: a top variable's local index
-        self._bs = 0  # the tangent size when every variable has the same (else 0)
-        self._ar = np.zeros(0, np.int64)
         self.dx = np.zeros(64)  # offsets (delta) by permanent dof
         self.cliques: dict[int, _Clique] = {}
         self.roots: set[int] = set()
@@ -159,9 +157,6 @@ class BayesTree:
         nums = np.arange(self.nvar, need)
         if k == 0:
             return nums
-        if self.nvar == 0 or self._bs != dim:
-            self._bs = dim if self.nvar == 0 else 0
-            self._ar = np.arange(self._bs)
         self.dim[self.nvar : need] = dim
         self.dof[self.nvar : need] = dofs
         top = int(dofs.max()) + dim
@@ -171,14 +166,6 @@ class BayesTree:
             self.dx = dx
         self.nvar = need
         return nums
-
-    def _dofs(self, v: np.ndarray) -> np.ndarray:
-        """Permanent dofs of variables ``v``, concatenated."""
-        off = self.dof[v]
-        if self._bs:
-            return (off[:, None] + self._ar).ravel()
-        d = self.dim[v]
-        return np.repeat(off - np.cumsum(d) + d, d) + np.arange(int(d.sum()))
 
     def clear(self) -> None:
         """Forget the factorisation (every variable is re-eliminated at the next update)."""
@@ -255,23 +242,12 @@ class BayesTree:
         base = self._next
         self._next += ngroup
         cid_of_pos = base + ngroup - 1 - group
-        # every clique's variables (frontal, then separator by position) side by side
-        seg = np.zeros(ngroup + 1, np.int64)
-        np.cumsum(cnt, out=seg[1:])
-        entry_cl = np.repeat(np.arange(ngroup), cnt)
-        lv_all = order[lvp]  # top-local index
-        v_all = top[lv_all]  # variable number
-        d_all = self.dim[v_all]
-        cum0 = np.cumsum(d_all) - d_all  # dof offset of each entry from the start of all
-        off_all = cum0 - cum0[seg[:-1]][entry_cl]  # dof offset within its clique's matrix
-        dseg = np.append(cum0[seg[:-1]], cum0[-1] + d_all[-1])
+        # every clique's variables (frontal, then separator by position) side by side, their
+        # dofs, the parents and the pools' offsets (compiled)
+        seg, lv_all, v_all, off_all, dseg, nfs, parent_id, ptr, dofs_all = _treekern.layout(
+            order, lvp, nfr, cnt, group, top, self.dim, self.dof, self.clique_of, base
+        )
         sizes = np.diff(dseg)
-        nfs = cum0[seg[:-1] + nfr - 1] + d_all[seg[:-1] + nfr - 1] - dseg[:-1]
-        dofs_all = self._dofs(v_all)
-        front = (np.arange(len(lvp)) - seg[:-1][entry_cl]) < nfr[entry_cl]
-        self.clique_of[v_all[front]] = base + entry_cl[front]
-        has_sep = cnt > nfr
-        parent_id = np.where(has_sep, cid_of_pos[lvp[np.minimum(seg[:-1] + nfr, len(lvp) - 1)]], -1)
         new: list[_Clique] = []
         ss, nl, ds, nfl, par = seg.tolist(), nfr.tolist(), dseg.tolist(), nfs.tolist(), parent_id.tolist()
         for i in range(ngroup):
@@ -296,11 +272,11 @@ class BayesTree:
         own_l, nv_l, var_l, G_l, b_l = [], [], [], [], []
         for gi, idx, L in con_loc:
             g = groups[gi]
-            owner = cid_of_pos[pos[L].min(axis=1)]
-            srt = np.argsort(owner, kind="stable")
-            u, start = np.unique(owner[srt], return_index=True)
-            for cid, chunk in zip(u.tolist(), np.split(idx[srt], start[1:])):
-                cl[cid].fac.append((gi, chunk))
+            owner, srt, u, start = _treekern.owners(L, pos, cid_of_pos)
+            idx_s = idx[srt]
+            st = start.tolist()
+            for k, cid in enumerate(u.tolist()):
+                cl[cid].fac.append((gi, idx_s[st[k] : st[k + 1]]))
             own_l.append(owner - base)
             nv_l.append(np.full(len(idx), L.shape[1], np.int64))
             var_l.append(L.ravel())
@@ -313,7 +289,7 @@ class BayesTree:
         # root down (compiled); the orphans' subtrees wait until their offsets are asked
         # for (solve_pending, solve_path)
         nss = sizes - nfs
-        rptr, sptr, dptr, aptr, bptr = (_offsets(x) for x in (nfs * nfs, nfs * nss, nfs, nss * nss, nss))
+        rptr, sptr, dptr, aptr, bptr = ptr
         need = [int(p[-1]) for p in (rptr, sptr, dptr, aptr, bptr, bptr)]
         # A large top (hundreds of cliques) writes tens of MB of conditionals and cached
         # factors: fresh memory that large comes from mmap, and its page faults took 3-4x

@@ -234,6 +234,86 @@ def symbolic(m, h_ptr, h_vars, pos, relax, cap):  # pragma: no cover - compiled
 
 
 @_jit
+def layout(order, lvp, nfr, cnt, group, top, dim, dof, clique_of, base):  # pragma: no cover - compiled
+    """The new cliques' layout after :func:`symbolic` (clique ``i`` has id ``base + i``): each
+    entry's variable number ``v_all`` (cliques side by side, frontal first) and its dof offset
+    within its clique's matrix ``off_all``; per clique its entry segment ``seg``, its dof
+    segment ``dseg`` (of ``dofs_all``, the entries' permanent dofs), its frontal size ``nfs``
+    and parent id (-1: a root); and the offsets of its pieces in the pools of conditionals
+    ``R^-1`` (nf x nf), ``S`` (nf x ns), ``d`` (nf) and cached factors ``A_c`` (ns x ns), ``b_c``
+    (ns). Sets ``clique_of`` of the frontal variables."""
+    ng = len(nfr)
+    ne = len(lvp)
+    seg = np.zeros(ng + 1, np.int64)
+    for i in range(ng):
+        seg[i + 1] = seg[i] + cnt[i]
+    lv_all = np.empty(ne, np.int64)
+    v_all = np.empty(ne, np.int64)
+    off_all = np.empty(ne, np.int64)
+    dseg = np.zeros(ng + 1, np.int64)
+    nfs = np.zeros(ng, np.int64)
+    parent = np.full(ng, -1, np.int64)
+    ptr = np.zeros((5, ng + 1), np.int64)  # rptr, sptr, dptr, aptr, bptr
+    for i in range(ng):
+        off = 0
+        for e in range(seg[i], seg[i + 1]):
+            lv = order[lvp[e]]
+            v = top[lv]
+            lv_all[e] = lv
+            v_all[e] = v
+            off_all[e] = off
+            if e - seg[i] < nfr[i]:
+                clique_of[v] = base + i
+                nfs[i] += dim[v]
+            off += dim[v]
+        dseg[i + 1] = dseg[i] + off
+        if cnt[i] > nfr[i]:  # the first separator variable's clique: symbolic groups are
+            # numbered from the root, new clique ids from the leaves
+            parent[i] = base + ng - 1 - group[lvp[seg[i] + nfr[i]]]
+        nf = nfs[i]
+        ns = off - nf
+        ptr[0, i + 1] = ptr[0, i] + nf * nf
+        ptr[1, i + 1] = ptr[1, i] + nf * ns
+        ptr[2, i + 1] = ptr[2, i] + nf
+        ptr[3, i + 1] = ptr[3, i] + ns * ns
+        ptr[4, i + 1] = ptr[4, i] + ns
+    dofs_all = np.empty(dseg[ng], np.int64)
+    k = 0
+    for e in range(ne):
+        v = v_all[e]
+        for j in range(dim[v]):
+            dofs_all[k] = dof[v] + j
+            k += 1
+    return seg, lv_all, v_all, off_all, dseg, nfs, parent, ptr, dofs_all
+
+
+@_jit
+def owners(L, pos, cid_of_pos):  # pragma: no cover - compiled
+    """The clique owning each constraint (the one eliminating the first of its variables;
+    ``L``: the constraints' top-local variables, one row each), the constraints grouped by
+    owner (a stable order, ``srt``) and the owners with the start of their runs in it."""
+    n, k = L.shape
+    owner = np.empty(n, np.int64)
+    for i in range(n):
+        p = pos[L[i, 0]]
+        for j in range(1, k):
+            p = min(p, pos[L[i, j]])
+        owner[i] = cid_of_pos[p]
+    srt = np.argsort(owner, kind="mergesort")
+    uniq = np.empty(n, np.int64)
+    start = np.empty(n + 1, np.int64)
+    nu = 0
+    for r in range(n):
+        o = owner[srt[r]]
+        if nu == 0 or uniq[nu - 1] != o:
+            uniq[nu] = o
+            start[nu] = r
+            nu += 1
+    start[nu] = n
+    return owner, srt, uniq[:nu], start[: nu + 1]
+
+
+@_jit
 def _cholesky_inverse(blas: np.ndarray, A: np.ndarray, ib: np.ndarray, ch: np.ndarray) -> bool:  # pragma: no cover
     """``A`` (row-major, its lower triangle read) becomes ``L^-1`` for its lower Cholesky
     factor ``L`` (upper triangle zero), by LAPACK ``dpotrf`` and ``dtrtri`` on its
