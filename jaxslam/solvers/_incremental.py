@@ -374,6 +374,7 @@ def _pad_rows(a: np.ndarray, cap: int) -> np.ndarray:
 
 
 _DENSE_MAX = 240  # systems up to this many dofs are solved densely
+_ADJ_LOOP_MAX = 32  # moved variables up to this many: their constraints through the adjacency dict
 
 
 def _chunks(m: int, sizes: tuple[int, ...]):
@@ -594,6 +595,7 @@ class IncrementalSolver:
         cfg = self.config
         affected: dict[int, set[int]] = {}  # store -> rows
         dirty: dict[int, list[int]] = {}  # group -> constraints to relinearise
+        dirty_arrays: dict[int, list[np.ndarray]] = {}  # more of them, as arrays
         removed_vars: list[np.ndarray] = []
         new_vars: list[np.ndarray] = []
         checked_values, checked_factors = self._validate(new_factors, new_values, remove)
@@ -639,10 +641,23 @@ class IncrementalSolver:
                 moved = np.nonzero(s.live[: s.n] & (np.max(np.abs(s.delta[: s.n]), axis=1) > self._relin_threshold))[0]
             moved_rows.append(moved)
             nrelin += moved.size
-            for r in moved.tolist():
-                for gi, c in self._adj.get((s.index, r), ()):
-                    dirty.setdefault(gi, []).append(c)
-        dirty_idx = {gi: np.unique(np.asarray(cs, np.int64)) for gi, cs in dirty.items()}
+            if moved.size <= _ADJ_LOOP_MAX:
+                for r in moved.tolist():
+                    for gi, c in self._adj.get((s.index, r), ()):
+                        dirty.setdefault(gi, []).append(c)
+                continue
+            # many moved (a relinearisation step moves most of a drifting graph): every
+            # group's constraints on them at once instead of a dict lookup per variable
+            hit = np.zeros(s.n, bool)
+            hit[moved] = True
+            for g in self._group_list:
+                for k, si in enumerate(g.slots):
+                    if si == s.index and g.n:
+                        dirty_arrays.setdefault(g.index, []).append(np.nonzero(hit[g.rows[: g.n, k]])[0])
+        dirty_idx = {
+            gi: np.unique(np.concatenate([np.asarray(dirty.get(gi, ()), np.int64), *dirty_arrays.get(gi, ())]))
+            for gi in sorted(dirty.keys() | dirty_arrays.keys())
+        }
         # the linear model's cost changes by what the new and relinearised constraints
         # bring (a new constraint had J = r = 0): the bound on what a full solve can gain
         window = self._tree is None

@@ -700,3 +700,28 @@ def test_relinearize_skip_checks_only_every_kth_update() -> None:
     assert sum(r for _, r in counts[4]) > 0
     with pytest.raises(ConfigError, match="relinearize_skip"):
         IncrementalSolver(IncrementalConfig(relinearize_skip=0))
+
+
+def test_moved_variables_constraints_found_alike_by_dict_and_by_arrays(monkeypatch) -> None:
+    """A relinearisation step finds the moved variables' constraints through the adjacency
+    dict (few moved) or by masking every group's rows (many): same estimates either way."""
+    import jaxslam.solvers._incremental as inc
+
+    n = 30
+    P, odo = _chain_problem(n, seed=7)
+    z = np.asarray(SE3(P[-1]).inverse().compose(SE3(P[0])).params)
+    loop = BetweenFactor.create(
+        Pose3Var(np.array([n - 1])), Pose3Var(np.array([0])), z[None], Gaussian.isotropic(6, 1e-3)
+    )
+    out = []
+    for limit in (10**9, 0):  # every step by the dict, every step by the arrays
+        monkeypatch.setattr(inc, "_ADJ_LOOP_MAX", limit)
+        cfg = IncrementalConfig(engine="bayes_tree", relinearize_threshold=1e-4, relinearize_skip=1)
+        results: list = []
+        solver = _chain_solver(P, odo, n, cfg, results)
+        results.append(solver.update([loop]))
+        results.append(solver.update([]))  # the loop's correction moves many: all relinearised
+        assert results[-1].relinearized > 1
+        out.append((np.asarray(solver.estimate().params(Pose3Var)), [r.relinearized for r in results]))
+    np.testing.assert_allclose(out[1][0], out[0][0], rtol=0, atol=1e-12)
+    assert out[1][1] == out[0][1]
