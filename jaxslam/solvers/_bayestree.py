@@ -64,7 +64,8 @@ except ImportError:  # pragma: no cover
     _HAVE_CHOLMOD = False
 
 _EMPTY1, _EMPTY2 = np.zeros(0), np.zeros((0, 0))
-_SCRATCH_MIN = 1 << 21  # doubles (16 MB) of new conditionals above which the scratch buffer is used
+_SCRATCH_MIN = 1 << 21  # doubles (16 MB) of new conditionals above which a reused buffer holds them
+_BUFFERS = 4  # reused buffers kept at most
 _BLAS_ONE_THREAD_ABOVE = 64  # frontal matrices larger than this: BLAS held to one thread
 _MD_MAX = 256  # tops up to this size are ordered by the compiled minimum degree; larger by AMD
 
@@ -105,6 +106,11 @@ class _Clique:
         self.d = self.bc = self.sep_used = _EMPTY1
 
 
+def _clique_doubles(c: _Clique) -> int:
+    """Doubles a clique's conditional and cached factor hold."""
+    return c.Rinv.size + c.S.size + c.d.size + c.Ac.size + 2 * c.bc.size
+
+
 def _offsets(sizes: np.ndarray) -> np.ndarray:
     """Start offsets of runs of ``sizes``, with the total at the end."""
     out = np.zeros(len(sizes) + 1, np.int64)
@@ -139,7 +145,9 @@ class BayesTree:
         self.relax = 2
         self.max_frontal = 8
         self.last_reeliminated = 0  # variables re-eliminated by the last update
-        self._scratch = np.zeros(0)  # see update(): large tops' conditionals, copied out
+        # see _buffer(): reused buffers holding large tops' conditionals, each with the ids of
+        # the cliques whose pieces are views into it
+        self._bufs: list[tuple[np.ndarray, list[int]]] = []
 
     # --- variables ------------------------------------------------------------------------
     def add_vars(self, dofs: np.ndarray, dim: int) -> np.ndarray:
@@ -170,6 +178,7 @@ class BayesTree:
     def clear(self) -> None:
         """Forget the factorisation (every variable is re-eliminated at the next update)."""
         self.cliques.clear()
+        self._bufs = [(buf, []) for buf, _ in self._bufs]
         self.roots.clear()
         self.pending.clear()
         self.clique_of[: self.nvar] = -1
@@ -293,14 +302,14 @@ class BayesTree:
         need = [int(p[-1]) for p in (rptr, sptr, dptr, aptr, bptr, bptr)]
         # A large top (hundreds of cliques) writes tens of MB of conditionals and cached
         # factors: fresh memory that large comes from mmap, and its page faults took 3-4x
-        # the arithmetic on this machine. Those go through a reused scratch buffer and are
-        # copied out per clique (heap-sized pieces, reused); small tops get fresh pools.
+        # the arithmetic on this machine. Those go into a reused buffer (_buffer) and the
+        # cliques keep views into it; small tops get fresh pools.
         scratch = sum(need) > _SCRATCH_MIN
         if scratch:
-            if len(self._scratch) < sum(need):
-                self._scratch = np.empty(sum(need) + sum(need) // 4)  # a quarter to spare
+            buf = self._buffer(sum(need))
             cut = _offsets(np.asarray(need, np.int64)).tolist()
-            pools = [self._scratch[cut[k] : cut[k + 1]] for k in range(6)]
+            pools = [buf[cut[k] : cut[k + 1]] for k in range(6)]
+            self._bufs[-1][1].extend(range(base, base + ngroup))
         else:
             pools = [np.empty(n) for n in need]
         oc = [cl[o] for o in orphans]
@@ -335,11 +344,47 @@ class BayesTree:
             c.Ac = Ap[al[i] : al[i + 1]].reshape(ns, ns)
             c.bc = bp[bl[i] : bl[i + 1]]
             c.sep_used = up[bl[i] : bl[i + 1]]
-            if scratch:
-                c.Rinv, c.S, c.Ac = c.Rinv.copy(), c.S.copy(), c.Ac.copy()
-                c.d, c.bc, c.sep_used = c.d.copy(), c.bc.copy(), c.sep_used.copy()
         self.pending.update(orphans)
         return top
+
+    def _buffer(self, n: int) -> np.ndarray:
+        """A buffer of at least ``n`` doubles for a large top's conditionals, moved to the end
+        of ``_bufs`` (the caller records its new cliques there). Buffers are reused once no
+        clique lives in them; one whose surviving cliques fill under a quarter of it has them
+        copied out (their pieces are small) and is reused too; at most ``_BUFFERS`` are kept.
+        Reused memory is paged in already: a fresh buffer costs its page faults, a copy out
+        of every clique (what this replaced) cost a memory pass over all of them."""
+        cl = self.cliques
+        live: list[list[int]] = []
+        for buf, ids in self._bufs:
+            alive = [cid for cid in ids if cid in cl]  # ids are never reused
+            used = sum(_clique_doubles(cl[cid]) for cid in alive)
+            if alive and 4 * used < len(buf):
+                self._copy_out(alive)
+                alive = []
+            live.append(alive)
+        self._bufs = [(buf, ids) for (buf, _), ids in zip(self._bufs, live)]
+        free = [k for k, (buf, ids) in enumerate(self._bufs) if not ids and len(buf) >= n]
+        if free:
+            k = min(free, key=lambda j: len(self._bufs[j][0]))
+            chosen = self._bufs.pop(k)
+        else:
+            # a free buffer too small is dropped (its memory returned) before a larger one is made
+            self._bufs = [(b, ids) for b, ids in self._bufs if ids]
+            chosen = (np.empty(n + n // 4), [])  # a quarter to spare
+        while len(self._bufs) >= _BUFFERS:  # the cap: empty the least-used of the others
+            k = min(range(len(self._bufs)), key=lambda j: sum(_clique_doubles(cl[c]) for c in self._bufs[j][1]))
+            self._copy_out(self._bufs[k][1])
+            self._bufs.pop(k)
+        self._bufs.append(chosen)
+        return chosen[0]
+
+    def _copy_out(self, cids: list[int]) -> None:
+        """Give cliques ``cids`` their own copies of their pieces (out of a shared buffer)."""
+        for cid in cids:
+            c = self.cliques[cid]
+            c.Rinv, c.S, c.Ac = c.Rinv.copy(), c.S.copy(), c.Ac.copy()
+            c.d, c.bc, c.sep_used = c.d.copy(), c.bc.copy(), c.sep_used.copy()
 
     def _visit(self, c: _Clique) -> bool:
         """Wildfire at one clique (compiled: :func:`._treekern.visit`): recompute it when its

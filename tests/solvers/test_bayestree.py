@@ -64,11 +64,20 @@ def _feed(graph, solver: IncrementalSolver, k: int, vid, edges) -> None:
     solver.update(facs, vals)
 
 
-@pytest.mark.parametrize("md_max", [256, 0], ids=["min_degree", "amd_or_natural"])
-def test_offsets_are_the_exact_solution_after_every_update(md_max: int, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(
+    "md_max, buffers", [(256, False), (0, False), (256, True)], ids=["min_degree", "amd_or_natural", "reused_buffers"]
+)
+def test_offsets_are_the_exact_solution_after_every_update(
+    md_max: int, buffers: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # md_max 0: every top ordered by CHOLMOD's AMD (natural order without CHOLMOD), the path
-    # of tops above 256 variables
+    # of tops above 256 variables; buffers: every top's conditionals in the reused buffers
+    # (the path of tops above 16 MB), two kept at most, so cliques are copied out and
+    # buffers reused and dropped all along
     monkeypatch.setattr(_bayestree, "_MD_MAX", md_max)
+    if buffers:
+        monkeypatch.setattr(_bayestree, "_SCRATCH_MIN", 0)
+        monkeypatch.setattr(_bayestree, "_BUFFERS", 2)
     graph = read_g2o(DATA / "smallGrid3D.g2o")
     solver = IncrementalSolver(TREE)
     worst = 0.0
@@ -81,6 +90,11 @@ def test_offsets_are_the_exact_solution_after_every_update(md_max: int, monkeypa
         worst = max(worst, float(np.abs(_offsets(solver) - ref).max() / max(np.abs(ref).max(), 1e-12)))
     assert worst < 1e-9, worst
     assert partial >= 20, partial  # most updates re-eliminate only a part of the tree
+    if buffers:
+        tree = solver._tree
+        assert 1 <= len(tree._bufs) <= 2
+        shared = [c for c in tree.cliques.values() if c.Ac.base is not None and c.Ac.base is tree._bufs[-1][0]]
+        assert shared  # the newest cliques live in the newest buffer
 
 
 def test_value_brings_one_variable_up_to_date_through_its_path() -> None:
