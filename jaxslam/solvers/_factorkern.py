@@ -22,6 +22,8 @@ import math
 import numba
 import numpy as np
 
+from ._liekern import _quat_rotate
+
 _jit = numba.njit(cache=True, nogil=True)
 
 _SERIES_SQ = 0.2 * 0.2  # jaxslam.lie._utils.SERIES_ANGLE squared
@@ -99,29 +101,16 @@ def _qmul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:  # pragma: no 
 
 
 @_jit
-def _qrot(q: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
-    """``q p q*`` as ``p + w t + v x t`` with ``t = 2 v x p`` (jaxslam.lie's quat_rotate)."""
-    w, vx, vy, vz = q[0], q[1], q[2], q[3]
-    tx = 2.0 * (vy * p[2] - vz * p[1])
-    ty = 2.0 * (vz * p[0] - vx * p[2])
-    tz = 2.0 * (vx * p[1] - vy * p[0])
-    out[0] = p[0] + w * tx + (vy * tz - vz * ty)
-    out[1] = p[1] + w * ty + (vz * tx - vx * tz)
-    out[2] = p[2] + w * tz + (vx * ty - vy * tx)
-
-
-@_jit
 def _relative3(a: np.ndarray, b: np.ndarray, out: np.ndarray, s: np.ndarray) -> None:  # pragma: no cover
-    """``a^-1 b`` of SE(3) parameters ``[q, t]`` (``s``: 11 floats of scratch)."""
+    """``a^-1 b`` of SE(3) parameters ``[q, t]`` (``s``: at least 4 floats of scratch)."""
     s[0] = a[0]
     s[1] = -a[1]
     s[2] = -a[2]
     s[3] = -a[3]
     _qmul(s[:4], b[:4], out[:4])
-    _qrot(s[:4], a[4:7], s[4:7])
-    _qrot(s[:4], b[4:7], s[7:10])
-    for k in range(3):
-        out[4 + k] = -s[4 + k] + s[7 + k]
+    a0, a1, a2 = _quat_rotate(s[:4], a[4:7])
+    b0, b1, b2 = _quat_rotate(s[:4], b[4:7])
+    out[4], out[5], out[6] = -a0 + b0, -a1 + b1, -a2 + b2
 
 
 @_jit
@@ -170,7 +159,7 @@ def between_se3(
     rel = np.empty(7)
     err = np.empty(7)
     ji_rel = np.empty(7)
-    s = np.empty(11)
+    s = np.empty(4)
     e = np.empty(6)
     W = np.empty((3, 3))
     R = np.empty((3, 3))
