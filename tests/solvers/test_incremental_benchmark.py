@@ -77,3 +77,10 @@ def test_isam2_params_defaults_are_gtsams() -> None:
     ca, cb, cc = (float(stream.gt_graph.error(x.calculateEstimate())) for x in (a, b, c))
     assert ca == cb
     assert cc != ca  # the settings do reach iSAM2
+
+
+def test_benchmark_refuses_zero_rounds(monkeypatch) -> None:
+    bench = _load_bench()
+    monkeypatch.setattr("sys.argv", ["incremental.py", str(DATA / "tinyGrid3D.g2o"), "--rounds", "0"])
+    with pytest.raises(SystemExit, match="--rounds must be at least 1"):
+        bench.main()
